@@ -1,0 +1,39 @@
+# Two commands set everything up on a fresh machine:
+#   make demo   -- simulate a small campaign, fit it into a results store, write the report
+#   make test   -- run the whole test suite (slow tests included)
+# Both create or reuse the virtual environment in .venv and install what they need.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY      = $(VENV)/bin/python
+STAMP   = $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
+JOBS   ?= 2
+
+.PHONY: venv demo test test-fast bench sample-data clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test,dask]"
+	rm -f $(VENV)/.installed-*
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m pipelines.demo
+
+test: $(STAMP)
+	$(PY) -m pytest -n $(JOBS) -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -n $(JOBS) -q -m "not slow"
+
+bench: $(STAMP)
+	$(PY) -m benchmarks
+
+sample-data: $(STAMP)
+	$(PY) -m pipelines.sample_data
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -1,0 +1,1 @@
+"""The driveline model: stiffness laws, linear baseline, dynamics and simulation."""
