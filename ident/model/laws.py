@@ -16,8 +16,8 @@ positive side, ``k2`` the stiffness inside the gap.
 * :func:`g4` -- hyperbolic tangent ``d*a0*tanh(sigma*|d|)``.
 * :func:`piecewise` -- g1 with softening or hardening beyond a knee (Fig. 1b, 1c).
 * :func:`g1_smooth` / :func:`piecewise_smooth` -- the same with kinks rounded over
-  a width ``w`` (rad) for the optimiser; ``|g1_smooth - g1| <= (k1 + k3) * w / 2``
-  everywhere (see :func:`smooth_max`).
+  a width ``w`` (rad) for the optimiser; ``|g1_smooth - g1| <= (k1 + k3 + 2*k2) * w / 2``
+  everywhere (:func:`g1_smooth_error_bound`, from the ``w/2`` of :func:`smooth_max`).
 """
 
 from __future__ import annotations
