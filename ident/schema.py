@@ -65,7 +65,8 @@ def _get(ctx: _Ctx, d: Mapping[str, Any], key: str, table: str, index: int | Non
          default: Any = None) -> Any:
     if key not in d:
         if required:
-            raise ctx.error(f"required key '{key}' is missing", table, index, None, label)
+            # name the missing key itself; the locator falls back to the table's header line
+            raise ctx.error(f"required key '{key}' is missing", table, index, key, label)
         return default
     v = d[key]
     if kind in ((int, float), float):
