@@ -182,8 +182,11 @@ class ModelOptions:
     ----------
     family : Family
         Stiffness law of every element.
-    smoothing : float or None
+    smoothing : float, None or "param"
         For g1: kink rounding width, rad (``None``: exact kinks, for simulation).
+        ``"param"``: the width is the model's last parameter, ``"smoothing"``
+        (rad, default 1e-4), so that a fit can continue on it without
+        rebuilding the model.
     effects : tuple of Effect
         Terms for effects the mill file leaves out (ident.model.effects).
     bearings : bool
@@ -191,7 +194,7 @@ class ModelOptions:
     """
 
     family: Family = Family.G1
-    smoothing: float | None = None
+    smoothing: float | str | None = None
     effects: tuple = ()
     bearings: bool = False
 
@@ -245,7 +248,7 @@ class Driveline:
 
 
 def _element_torque(e: Element, delta: Any, ddelta: Any, p: dict[str, Any], family: Family,
-                    smoothing: float | None, b_shift: Any = 0.0) -> Any:
+                    smoothing: Any, b_shift: Any = 0.0) -> Any:
     """Restoring torque g(delta) + c*ddelta of one element under a family."""
     if family is Family.G1:
         gap, b = p["gap"], p["gap_open"] + b_shift
@@ -308,8 +311,12 @@ def build_driveline(mill: Mill, options: ModelOptions = ModelOptions()) -> Drive
         for nm, v in zip(eff.param_names, eff.param_defaults):
             pnames.append(f"{eff.name}@{eff.location}.{nm}")
             pdefault.append(float(v))
+    if options.smoothing == "param":
+        pnames.append("smoothing")
+        pdefault.append(1e-4)
     p = ca.SX.sym("p", len(pnames))
     pidx = {nm: i for i, nm in enumerate(pnames)}
+    smoothing = p[pidx["smoothing"]] if options.smoothing == "param" else options.smoothing
 
     delta = ca.mtimes(ca.DM(D), theta)
     ddelta = ca.mtimes(ca.DM(D), omega)
@@ -337,7 +344,7 @@ def build_driveline(mill: Mill, options: ModelOptions = ModelOptions()) -> Drive
     tau = []
     for i, e in enumerate(mill.elements):
         ep = {nm: p[pidx[f"{e.id}.{nm}"]] for nm in family_param_names(family)}
-        ti = _element_torque(e, delta[i], ddelta[i], ep, family, options.smoothing, b_shift[i])
+        ti = _element_torque(e, delta[i], ddelta[i], ep, family, smoothing, b_shift[i])
         for tm in terms:
             if i in tm.element_torque:
                 ti = ti + tm.element_torque[i]
