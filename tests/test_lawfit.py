@@ -191,6 +191,7 @@ def test_g2_is_monotone_condition():
     assert not g2_is_monotone(3.0, -3.0001, 1.0)    # the mirrored case has two extrema too
     assert not g2_is_monotone(-1.0, 0.0, 1.0)
     assert not g2_is_monotone(1.0, 0.0, -1.0)
+    assert not g2_is_monotone(0.0, 0.0, -1.0)      # -d**3 falls everywhere
     assert g2_is_monotone(0.0, 0.0, 0.0)
     # cross-check against the sign of the derivative on a wide grid
     rng = np.random.default_rng(7)
