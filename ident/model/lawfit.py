@@ -23,13 +23,13 @@ squares on 2001 points over ``[-amplitude, amplitude]``; RMS error in % of
     10(a+b) = 0.020    4.7 (8.5) / 3.0 (7.0)    0.7 (1.7) / 0.11 (0.18)  0.9 (1.4) / 0.78 (1.7)
     20(a+b) = 0.040    2.6 (4.6) / 1.7 (4.3)    0.4 (0.9) / 0.03 (0.11)  0.8 (1.2) / 0.67 (1.2)
 
-* Beyond ``+-2(a+b)`` the seed's ranking holds: g3 and g4 are 2.5 to 60 times
-  more accurate than g2 there; g3 gains with amplitude because its asymptote
+* Beyond ``+-2(a+b)`` the seed's ranking holds: in the table g3 and g4 are 2.5 to
+  60 times more accurate than g2 there (RMS); g3 gains with amplitude because its asymptote
   carries the gap's offset, g4 tends to ``a0*d`` with none.  A g2 fitted near
   the gap and used beyond its range deviates fast (cubic growth).
 * Inside ``+-2(a+b)`` our least-squares fits do **not** reproduce the seed's
-  claim that g2 is the more accurate there: g3 and g4 are 3 to 8 times better
-  inside too, at every amplitude from ``2(a+b)`` to ``40(a+b)``.  A cubic cannot
+  claim that g2 is the more accurate there: g3 and g4 are 2.5 to 8 times better
+  inside too (RMS), at every amplitude from ``2(a+b)`` to ``40(a+b)``.  A cubic cannot
   be flat over the gap and steep beyond it; the seed does not say how its
   coefficients were chosen.  Fitted over a range not much wider than the gap,
   g2 bends into two extrema (``a1 < 0``, e.g. ``a = b = 0.002`` rad,
