@@ -1,0 +1,476 @@
+"""Run a campaign: every recording under a folder, processed in parallel, into a store.
+
+:func:`run_campaign` finds the recordings (:mod:`ident.store.discover`), skips
+those already stored with the same content and settings, sends the rest to worker
+processes (a local process pool on all cores, or a Dask cluster), and writes each
+outcome as it arrives, one transaction per recording, from this process only.
+
+Failure model
+-------------
+* A recording that fails in any stage is stored as ``failed`` with its reason;
+  the rest go on.
+* A worker process that dies (killed, out of memory, a crash in native code)
+  breaks a local pool: the pool is restarted and the recordings that were in
+  flight are retried one at a time, so that the one that kills its worker is
+  found and stored as failed.  On Dask the scheduler retries a task whose worker
+  died and gives up after its ``allowed-failures``; that too is stored as failed.
+* The parent crashing loses nothing already written: each recording is committed
+  on its own, and a rerun skips it.
+
+Memory is bounded per worker: one recording at a time per worker process, at most
+two recordings queued per worker, local workers replaced after
+``tasks_per_worker`` recordings (and optionally limited to ``memory_limit_mb`` of
+address space); Dask workers by the cluster's ``memory_limit``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+import socket
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+from ..description import Mill
+from ..errors import IdentError, MillFileError, StoreError
+from ..io.millfile import load_mill
+from .discover import RecordingSource, discover
+from .outcome import RecordingOutcome
+from .process import (ProcessFn, Settings, describe_error, library_versions, process_recording,
+                      settings_hash)
+from .store import RecordingKey, Store, open_store
+
+__all__ = ["run_campaign", "CampaignSummary", "CampaignError", "default_workers"]
+
+
+class CampaignError(IdentError, RuntimeError):
+    """A campaign cannot run: e.g. its Dask scheduler cannot be reached."""
+
+
+@dataclass(frozen=True)
+class CampaignSummary:
+    """What a campaign run did.
+
+    Attributes
+    ----------
+    run_id : int
+        Row of the ``runs`` table.
+    store : str
+        Store URL (without password).
+    n_found : int
+        Recordings under the folder.
+    n_skipped : int
+        Already stored with the same content and settings (not processed again).
+    n_done, n_failed : int
+        Processed by this run, successfully / as failed.
+    failed : tuple of (str, str)
+        ``(file_name, error)`` of every recording under the folder stored as failed,
+        by this run or an earlier one.
+    elapsed_s : float
+        Wall time, s.
+    executor : str
+        ``local:N`` (N worker processes), ``inline`` or ``dask:ADDR``.
+    """
+
+    run_id: int
+    store: str
+    n_found: int
+    n_skipped: int
+    n_done: int
+    n_failed: int
+    failed: tuple[tuple[str, str], ...] = ()
+    elapsed_s: float = 0.0
+    executor: str = ""
+
+    @property
+    def throughput_per_min(self) -> float:
+        """Recordings processed per minute by this run."""
+        n = self.n_done + self.n_failed
+        return 60.0 * n / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"run_id": self.run_id, "store": self.store, "found": self.n_found,
+                "skipped": self.n_skipped, "done": self.n_done, "failed": self.n_failed,
+                "failed_recordings": [{"file": f, "error": e} for f, e in self.failed],
+                "elapsed_s": round(self.elapsed_s, 3), "executor": self.executor,
+                "recordings_per_min": round(self.throughput_per_min, 2)}
+
+
+def default_workers() -> int:
+    """Worker processes by default: every core this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# ---- work unit (runs in the workers) ------------------------------------------------
+def _work(process: ProcessFn, path: str, mill: Mill, settings: Settings) -> RecordingOutcome:
+    return process(Path(path), mill, settings)
+
+
+def _init_worker(memory_limit_mb: int | None) -> None:
+    """Worker start: one BLAS/OpenMP thread; optionally cap the address space."""
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover
+        pass
+    if memory_limit_mb:
+        import resource
+
+        lim = int(memory_limit_mb) * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+
+
+@dataclass
+class _Job:
+    source: RecordingSource
+    replace: bool = False
+    alone: bool = False
+
+
+# ---- executors ----------------------------------------------------------------------
+class _Inline:
+    """Run in this process (``workers=0``): no isolation, for debugging."""
+
+    name = "inline"
+    capacity = 1
+
+    def __init__(self, process: ProcessFn) -> None:
+        self.process = process
+
+    def submit(self, path: str, mill: Mill, settings: Settings) -> cf.Future:
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(_work(self.process, path, mill, settings))
+        except Exception as exc:  # noqa: BLE001 - reported like a worker's failure
+            fut.set_exception(exc)
+        return fut
+
+    def wait(self, futs) -> set:
+        return set(futs)
+
+    def restart(self) -> None:  # pragma: no cover - nothing to restart
+        pass
+
+    def close(self, *, cancel: bool = False) -> None:
+        pass
+
+
+class _LocalPool:
+    """Worker processes (spawned) on this machine."""
+
+    def __init__(self, process: ProcessFn, workers: int, *, tasks_per_worker: int,
+                 memory_limit_mb: int | None) -> None:
+        self.process = process
+        self.workers = workers
+        self.capacity = 2 * workers
+        self.name = f"local:{workers}"
+        self._kw = dict(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                        max_tasks_per_child=tasks_per_worker, initializer=_init_worker,
+                        initargs=(memory_limit_mb,))
+        self.pool = cf.ProcessPoolExecutor(**self._kw)
+
+    def submit(self, path: str, mill: Mill, settings: Settings) -> cf.Future:
+        return self.pool.submit(_work, self.process, path, mill, settings)
+
+    def wait(self, futs) -> set:
+        done, _ = cf.wait(futs, return_when=cf.FIRST_COMPLETED)
+        return done
+
+    def restart(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool = cf.ProcessPoolExecutor(**self._kw)
+
+    def close(self, *, cancel: bool = False) -> None:
+        self.pool.shutdown(wait=not cancel, cancel_futures=cancel)
+
+
+class _Dask:
+    """The same work units on a Dask distributed cluster."""
+
+    def __init__(self, process: ProcessFn, address: str) -> None:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise CampaignError("--scheduler needs dask.distributed: pip install "
+                                "'dask[distributed]'") from None
+        try:
+            self.client = Client(address, timeout="15s", set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise CampaignError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
+        self.process = process
+        threads = sum(self.client.nthreads().values()) or 1
+        self.capacity = 2 * threads
+        self.name = f"dask:{address}"
+
+    def submit(self, path: str, mill: Mill, settings: Settings):
+        return self.client.submit(_work, self.process, path, mill, settings, pure=False)
+
+    def wait(self, futs) -> set:
+        from distributed import wait
+
+        done, _ = wait(list(futs), return_when="FIRST_COMPLETED")
+        return set(done)
+
+    def restart(self) -> None:  # pragma: no cover - the scheduler recovers by itself
+        pass
+
+    def close(self, *, cancel: bool = False) -> None:
+        self.client.close()
+
+
+def _make_executor(process: ProcessFn, workers: int | None, scheduler: str | None, *,
+                   tasks_per_worker: int, memory_limit_mb: int | None):
+    if scheduler:
+        return _Dask(process, scheduler)
+    n = default_workers() if workers is None else int(workers)
+    if n < 0:
+        raise CampaignError(f"workers must be 0 (in this process) or more. Got {n}")
+    if n == 0:
+        return _Inline(process)
+    return _LocalPool(process, n, tasks_per_worker=tasks_per_worker,
+                      memory_limit_mb=memory_limit_mb)
+
+
+def _worker_died(job: _Job, exc: BaseException) -> RecordingOutcome:
+    return RecordingOutcome(
+        status="failed", stage="worker", error_kind=type(exc).__name__,
+        error=(f"worker: the worker process died while processing {job.source.file_name} "
+               f"(killed, out of memory or crashed in native code): {exc}".rstrip(": ")),
+        started_at=time.time(), versions=library_versions())
+
+
+def _mill_and_text(mill: Mill | str | os.PathLike) -> tuple[Mill, str]:
+    if not isinstance(mill, Mill):
+        mill = load_mill(mill)
+    if not mill.source:
+        raise MillFileError("run_campaign needs the mill file itself (load it with "
+                            "ident.load_mill) so that the store can keep it")
+    try:
+        text = Path(mill.source).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MillFileError(f"cannot read mill file: {exc}", path=mill.source) from None
+    return mill, text
+
+
+# ---- the campaign -------------------------------------------------------------------
+def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, store: str, *,
+                 workers: int | None = None, scheduler: str | None = None,
+                 settings: Settings = Settings(), progress: bool = True,
+                 retry_failed: bool = False, process: ProcessFn = process_recording,
+                 tasks_per_worker: int = 25, memory_limit_mb: int | None = None,
+                 on_stored: Callable[[str, RecordingOutcome], None] | None = None,
+                 ) -> CampaignSummary:
+    """Process every recording under ``directory`` into the results store ``store``.
+
+    Parameters
+    ----------
+    directory : path
+        Campaign folder, searched recursively for ``*.mcap`` and ``*.csv``.
+    mill : Mill or path
+        The mill description (loaded from its file; the file is kept in the store).
+    store : str
+        SQLAlchemy URL, e.g. ``sqlite:///results.db``.
+    workers : int, optional
+        Local worker processes; default all cores; 0 runs in this process.
+    scheduler : str, optional
+        Address of a Dask scheduler (``tcp://host:8786``); the recordings' paths must
+        be readable by its workers.
+    settings : Settings
+        Processing settings; with the mill description they form the key that makes
+        a rerun skip what is done.
+    progress : bool
+        Progress bar with ETA on stderr.
+    retry_failed : bool
+        Process again recordings stored as failed with the same key.
+    process : callable
+        ``process(path, mill, settings) -> RecordingOutcome``, importable by the
+        workers; :func:`~ident.store.process.process_recording` by default.
+    tasks_per_worker : int
+        Local worker processes are replaced after this many recordings.
+    memory_limit_mb : int, optional
+        Address-space limit of each local worker process, MiB; a recording that
+        needs more fails with ``MemoryError``.
+    on_stored : callable, optional
+        Called as ``on_stored(file_name, outcome)`` after each commit.
+
+    Returns
+    -------
+    CampaignSummary
+
+    Raises
+    ------
+    RecordingError
+        ``directory`` does not exist.
+    MillFileError, StoreError, CampaignError
+        Bad mill file, store or scheduler.
+    """
+    t_begin = time.perf_counter()
+    mill, mill_text = _mill_and_text(mill)
+    sources = discover(directory)
+    root = Path(directory).resolve()
+    model_hash = {}
+    if settings.model:
+        from .discover import content_hash
+
+        model_hash = {"model_sha256": content_hash((Path(settings.model),))}
+    shash = settings_hash(settings, mill, extra=model_hash)
+    st = open_store(store)
+    try:
+        st.register_mill(mill, mill_text)
+        stored = st.stored_keys(shash)
+        todo: deque[_Job] = deque()
+        failed_before: list[tuple[str, str]] = []
+        for s in sources:
+            status = stored.get((s.file_name, s.content_sha256))
+            if status is None:
+                todo.append(_Job(s))
+            elif status == "failed" and retry_failed:
+                todo.append(_Job(s, replace=True))
+            elif status == "failed":
+                failed_before.append((s.file_name, ""))
+        n_skipped = len(sources) - len(todo)
+        if failed_before:
+            failed_before = _errors_of(st, failed_before, shash, sources)
+        if not todo:
+            run_id = st.start_run(directory=str(root), mill=mill, settings_hash=shash,
+                                  settings=settings.to_dict(), executor="none",
+                                  host=socket.gethostname(), versions=library_versions(),
+                                  n_found=len(sources), n_skipped=n_skipped)
+            st.finish_run(run_id, status="finished", n_done=0, n_failed=0)
+            return CampaignSummary(run_id=run_id, store=st.url, n_found=len(sources),
+                                   n_skipped=n_skipped, n_done=0, n_failed=0,
+                                   failed=tuple(failed_before),
+                                   elapsed_s=time.perf_counter() - t_begin, executor="none")
+        ex = _make_executor(process, workers, scheduler, tasks_per_worker=tasks_per_worker,
+                            memory_limit_mb=memory_limit_mb)
+        run_id = st.start_run(directory=str(root), mill=mill, settings_hash=shash,
+                              settings=settings.to_dict(), executor=ex.name,
+                              host=socket.gethostname(), versions=library_versions(),
+                              n_found=len(sources), n_skipped=n_skipped)
+        counts = {"done": 0, "failed": 0}
+        failed_now: list[tuple[str, str]] = []
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(todo), unit="rec", desc=f"campaign {mill.name}", file=sys.stderr,
+                   disable=not progress, dynamic_ncols=True, smoothing=0.1)
+        status = "interrupted"
+        try:
+            def store_one(job: _Job, outcome: RecordingOutcome) -> None:
+                key = RecordingKey(job.source.file_name, job.source.content_sha256, shash)
+                outcome = _write(st, run_id, key, outcome, mill=mill, job=job, root=root)
+                counts[outcome.status] += 1
+                if not outcome.ok:
+                    failed_now.append((job.source.file_name, outcome.error or ""))
+                bar.update(1)
+                bar.set_postfix(failed=counts["failed"], refresh=False)
+                if on_stored is not None:
+                    on_stored(job.source.file_name, outcome)
+
+            _drive(ex, todo, mill, settings, store_one)
+            status = "finished"
+        finally:
+            bar.close()
+            ex.close(cancel=status != "finished")
+            st.finish_run(run_id, status=status, n_done=counts["done"],
+                          n_failed=counts["failed"])
+        return CampaignSummary(
+            run_id=run_id, store=st.url, n_found=len(sources), n_skipped=n_skipped,
+            n_done=counts["done"], n_failed=counts["failed"],
+            failed=tuple(sorted(failed_before + failed_now)),
+            elapsed_s=time.perf_counter() - t_begin, executor=ex.name)
+    finally:
+        st.close()
+
+
+def _errors_of(st: Store, failed: list[tuple[str, str]], shash: str,
+               sources: list[RecordingSource]) -> list[tuple[str, str]]:
+    import sqlalchemy as sa
+
+    from . import schema as S
+
+    r = S.recordings.c
+    names = {f for f, _ in failed}
+    hashes = {s.file_name: s.content_sha256 for s in sources}
+    with st.engine.connect() as conn:
+        rows = conn.execute(sa.select(r.file_name, r.content_sha256, r.error).where(
+            r.settings_hash == shash, r.status == "failed", r.file_name.in_(names))).all()
+    return [(f, e or "") for f, h, e in rows if hashes.get(f) == h]
+
+
+def _write(st: Store, run_id: int, key: RecordingKey, outcome: RecordingOutcome, *, mill: Mill,
+           job: _Job, root: Path) -> RecordingOutcome:
+    """Store one outcome; a result the database refuses is stored as failed instead."""
+    import sqlalchemy as sa
+
+    kw = dict(mill=mill, files=job.source.member_names(root), size_bytes=job.source.size_bytes,
+              replace=job.replace)
+    try:
+        st.write_outcome(run_id, key, outcome, **kw)
+        return outcome
+    except (sa.exc.DataError, sa.exc.StatementError) as exc:
+        if isinstance(exc, sa.exc.OperationalError):
+            raise StoreError(f"cannot write to the results store {st.url}: {exc.orig}") from None
+        bad = replace(outcome, status="failed", stage="store", error_kind=type(exc).__name__,
+                      error=f"store: the database refused the results: {exc.orig or exc}",
+                      segments=(), taf=(), fit=None, transient_fits=(), diagnosis=None)
+        st.write_outcome(run_id, key, bad, **kw)
+        return bad
+
+
+def _drive(ex, todo: deque[_Job], mill: Mill, settings: Settings,
+           store_one: Callable[[_Job, RecordingOutcome], None]) -> None:
+    """Keep the executor busy, store outcomes as they come, isolate worker crashes."""
+    inflight: dict[Any, _Job] = {}
+    suspects: deque[_Job] = deque()
+
+    def submit(job: _Job) -> None:
+        inflight[ex.submit(str(job.source.path), mill, settings)] = job
+
+    while todo or suspects or inflight:
+        if suspects:
+            if not inflight:
+                job = suspects.popleft()
+                job.alone = True
+                submit(job)
+        else:
+            while todo and len(inflight) < ex.capacity:
+                submit(todo.popleft())
+        broken = False
+        for fut in ex.wait(inflight):
+            job = inflight.pop(fut)
+            try:
+                outcome = fut.result()
+            except cf.process.BrokenProcessPool as exc:
+                broken = True
+                if job.alone:
+                    store_one(job, _worker_died(job, exc))
+                else:
+                    suspects.append(job)
+                continue
+            except Exception as exc:  # noqa: BLE001 - e.g. dask KilledWorker
+                outcome = RecordingOutcome(status="failed", stage="worker",
+                                           error=describe_error("worker", exc),
+                                           error_kind=type(exc).__name__, started_at=time.time(),
+                                           versions=library_versions())
+            store_one(job, outcome)
+        if broken:
+            # every other recording in flight is lost with the pool: keep finished ones,
+            # retry the rest one at a time to find the one that kills its worker
+            cf.wait(list(inflight))
+            for fut, job in list(inflight.items()):
+                exc = fut.exception()
+                if exc is None:
+                    store_one(job, fut.result())
+                else:
+                    suspects.append(job)
+            inflight.clear()
+            ex.restart()

@@ -1,0 +1,216 @@
+"""Process one recording through every stage into a :class:`RecordingOutcome`.
+
+``read -> segment -> taf -> fit -> diagnose``, each stage through its package's
+public API (imported inside :func:`process_recording`, so this module imports
+before those stages are installed).  Whatever goes wrong in a stage ends the
+recording as ``failed`` with a one-line reason naming the stage; warnings the
+stages raise become data-quality findings.  Nothing here writes anywhere: the
+campaign's parent process stores the outcome.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import sys
+import time
+import traceback
+import warnings
+from dataclasses import asdict, dataclass
+from importlib import metadata as _md
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from ..description import Mill
+from ..errors import IdentError
+from .outcome import RecordingOutcome, jsonable
+
+__all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn"]
+
+#: The signature of a per-recording processing function (the campaign's unit of work).
+ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
+
+_VERSIONED = ("ident", "numpy", "scipy", "pandas", "casadi", "scikit-learn", "mcap", "sqlalchemy")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How each recording of a campaign is processed (part of the idempotency key).
+
+    Attributes
+    ----------
+    family : str or None
+        Stiffness-law family for the fit (``g1`` ... ``g4``); None = the fit's default.
+    fit : bool
+        Identify gaps (CasADi collocation).  Without it only segments, TAF and the
+        diagnosis are stored.
+    per_transient : bool
+        Also fit every transient on its own (gap trend within a recording; costly).
+    max_transients : int or None
+        Fit at most this many transients per recording (the first ones), to bound
+        the cost of long recordings; None = all.
+    diagnose : bool
+        Run the wear diagnosis.
+    model : str or None
+        Trained classifier for the diagnosis; None = the cached model of the mill.
+    taf_window_s : float
+        Window after each bite searched for the peak torque, s.
+    """
+
+    family: str | None = None
+    fit: bool = True
+    per_transient: bool = False
+    max_transients: int | None = None
+    diagnose: bool = True
+    model: str | None = None
+    taf_window_s: float = 1.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def settings_hash(settings: Settings, mill: Mill, *, extra: Mapping[str, Any] | None = None) -> str:
+    """SHA-256 of the settings and the mill description (its values, not its formatting).
+
+    ``extra`` adds further inputs of the result, e.g. the hash of a model file.
+    """
+    blob = json.dumps({"settings": settings.to_dict(), "mill": mill.content_hash(),
+                       "extra": dict(extra or {})}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of ident, Python and the libraries that shape the results."""
+    out = {"python": sys.version.split()[0]}
+    for name in _VERSIONED:
+        try:
+            out[name] = _md.version(name)
+        except _md.PackageNotFoundError:
+            pass
+    return out
+
+
+class _Failed(Exception):
+    """Internal: a stage failed; carries the outcome fields."""
+
+    def __init__(self, stage: str, exc: BaseException) -> None:
+        self.stage = stage
+        self.exc = exc
+
+
+def describe_error(stage: str, exc: BaseException) -> str:
+    """One line saying where and why a recording failed."""
+    if isinstance(exc, IdentError):
+        return f"{stage}: {exc}"
+    if isinstance(exc, MemoryError):
+        return f"{stage}: out of memory (MemoryError {exc})".rstrip()
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+    return f"{stage}: internal error {type(exc).__name__}: {exc}{where}"
+
+
+def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -> RecordingOutcome:
+    """Read, segment, measure TAF, fit and diagnose one recording.
+
+    Parameters
+    ----------
+    path : path
+        The recording (``.mcap``, or the ``.csv`` key file of a CSV recording).
+    mill : Mill
+    settings : Settings
+
+    Returns
+    -------
+    RecordingOutcome
+        ``done`` with every stage's dicts, or ``failed`` with the stage, the error
+        and whatever the earlier stages produced.  It never raises for a bad
+        recording (or a bug in a stage); only ``KeyboardInterrupt``/``SystemExit``
+        pass through.
+    """
+    started = time.time()
+    t_start = time.perf_counter()
+    path = Path(path)
+    parts: dict[str, Any] = {"recording": {}, "segments": (), "taf": (), "fit": None,
+                             "transient_fits": (), "diagnosis": None}
+    quality: list[dict[str, Any]] = []
+
+    def stage(name: str, fn: Callable[[], Any]) -> Any:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                value = fn()
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except BaseException as exc:  # noqa: BLE001 - every failure is recorded
+                raise _Failed(name, exc) from exc
+            finally:
+                for w in caught:
+                    quality.append({"stage": name, "kind": f"warning:{w.category.__name__}",
+                                    "message": str(w.message), "channel": None,
+                                    "t_start": None, "t_end": None, "fatal": False})
+        return value
+
+    status, error, kind, failed_stage = "done", None, None, None
+    try:
+        from ..io.readers import read_recording
+
+        rec = stage("read", lambda: read_recording(path, mill))
+        quality[:0] = [dict(q.to_dict(), stage="read") for q in rec.issues]
+        parts["recording"] = {"recording_id": rec.metadata.get("recording_id"),
+                              "metadata": dict(rec.metadata), "t0_ns": int(rec.t0_ns),
+                              "duration_s": float(rec.duration)}
+
+        from ..segment import segment_transients
+
+        segs = stage("segment", lambda: tuple(segment_transients(rec, mill)))
+        parts["segments"] = tuple(jsonable(s.to_dict()) for s in segs)
+        if not segs:
+            raise _Failed("segment", IdentError(
+                f"{path.name}: no load-step transients found; nothing to fit"))
+
+        from .taf import measured_taf
+
+        parts["taf"] = tuple(stage("taf", lambda: measured_taf(
+            rec, mill, parts["segments"], window_s=settings.taf_window_s)))
+
+        if settings.fit:
+            from ..fit import fit_gaps, windows_from_recording
+
+            use = segs if settings.max_transients is None else segs[:settings.max_transients]
+            kw = {} if settings.family is None else {"family": settings.family}
+            windows = stage("fit", lambda: windows_from_recording(rec, mill, use))
+            parts["fit"] = jsonable(stage("fit", lambda: fit_gaps(mill, windows, **kw)).to_dict())
+            if settings.per_transient:
+                per = []
+                for i, seg in enumerate(use):
+                    w = stage("fit", lambda seg=seg: windows_from_recording(rec, mill, (seg,)))
+                    d = jsonable(stage("fit", lambda w=w: fit_gaps(mill, w, **kw)).to_dict())
+                    per.append(dict(d, transient_idx=i))
+                parts["transient_fits"] = tuple(per)
+
+        if settings.diagnose:
+            from ..diagnose import diagnose
+
+            kw_d = {} if settings.model is None else {"model": settings.model}
+            parts["diagnosis"] = jsonable(stage("diagnose", lambda: _as_dict(
+                diagnose(rec, mill, **kw_d))))
+    except _Failed as f:
+        status, failed_stage = "failed", f.stage
+        error, kind = describe_error(f.stage, f.exc), type(f.exc).__name__
+    except ImportError as exc:  # a stage that is not installed
+        status, failed_stage = "failed", "setup"
+        error, kind = describe_error("setup", exc), type(exc).__name__
+    return RecordingOutcome(
+        status=status, error=error, error_kind=kind, stage=failed_stage,
+        quality=tuple(jsonable(q) for q in quality), versions=library_versions(),
+        started_at=started, elapsed_s=time.perf_counter() - t_start,
+        worker=f"{socket.gethostname()}:{os.getpid()}", **parts)
+
+
+def _as_dict(result: Any) -> dict[str, Any]:
+    """A stage result as its cli.md dict (``to_dict()`` or already a mapping)."""
+    if isinstance(result, Mapping):
+        return dict(result)
+    return result.to_dict()
