@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["QUANTITY_UNITS", "G0", "to_si_factor", "rpm_to_rad_s", "rad_s_to_rpm", "normalize_unit"]
+__all__ = ["QUANTITY_UNITS", "G0", "to_si_factor", "rpm_to_rad_s", "rad_s_to_rpm", "normalize_unit",
+           "quantity_of_unit"]
 
 G0 = 9.80665  # m/s^2, standard gravity
 
@@ -57,3 +58,15 @@ def rpm_to_rad_s(speed_rpm: float) -> float:
 def rad_s_to_rpm(speed_rad_s: float) -> float:
     """Convert a rotational speed from rad/s to rpm."""
     return speed_rad_s * 60.0 / (2.0 * math.pi)
+
+
+def quantity_of_unit(unit: str) -> str | None:
+    """The quantity (``torque``, ``acceleration``, ``speed``) a unit belongs to, or None.
+
+    Used to bring a recording to SI when no mill file maps its channels.
+    """
+    u = normalize_unit(unit)
+    for quantity, units in QUANTITY_UNITS.items():
+        if u in units:
+            return quantity
+    return None

@@ -68,6 +68,11 @@ class QualityIssue:
         Seconds from the recording's start.
     message : str
     fatal : bool
+    device : str or None
+        The device (MCAP topic, CSV file) concerned; ``channel`` then lists its
+        channels comma-separated for device-wide findings such as dropouts.
+
+    See :mod:`ident.io.quality` for the kinds and which of them are fatal.
     """
 
     kind: str
@@ -77,11 +82,18 @@ class QualityIssue:
     t_start: float | None = None
     t_end: float | None = None
     fatal: bool = False
+    device: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "message": self.message, "path": self.path,
                 "channel": self.channel, "t_start": self.t_start, "t_end": self.t_end,
-                "fatal": self.fatal}
+                "fatal": self.fatal, "device": self.device}
+
+    def __str__(self) -> str:
+        where = [w for w in (self.path, f"channel '{self.channel}'" if self.channel else None,
+                             f"t={self.t_start:.4f} s" if self.t_start is not None else None)
+                 if w]
+        return f"{', '.join(where)}: {self.kind}: {self.message}"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,312 @@
+"""Read CSV recordings into device grids (``../shared/spec/telemetry.md``, CSV).
+
+Accepted shapes: ``,`` or ``;`` (or tab) separators, ``.`` or ``,`` decimal marks
+(a ``;`` file whose numbers hold a comma), a time column named ``time`` (also
+``time_s``, ``timestamp``, ``t``, or an unnamed first column as pandas writes an
+index) anywhere among the columns, holding float seconds or ISO-8601 timestamps
+(with a zone, or naive and taken as UTC), channel headers ``name`` or
+``name [unit]``, leading ``#`` comment lines.  One rate per file; a device written
+to ``name.csv`` may have siblings ``name.<device>.csv`` (see
+:mod:`ident.io.writers`), which are read with it.
+
+The file is streamed with pyarrow's CSV reader (the engine behind
+``pandas.read_csv(engine="pyarrow")``, used directly because pandas' pyarrow engine
+cannot read in chunks) into float32 arrays sized from the file size; rows are then
+put on a uniform grid of the median time step, where missing rows (dropouts) are NaN.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .grid import DeviceGrid
+from .quality import IssueLog
+
+__all__ = ["read_csv", "split_header", "csv_siblings"]
+
+_UNIT = re.compile(r"^\s*(.*?)\s*\[\s*([^\]]*?)\s*\]\s*$")
+_TIME_NAMES = {"time", "time_s", "timestamp", "t", "time [s]"}
+_DECIMAL_COMMA = re.compile(r"^\s*[-+]?\d+,\d+([eE][-+]?\d+)?\s*$")
+
+
+def split_header(name: str) -> tuple[str, str | None]:
+    """``"T_C12 [kN*m]"`` -> ``("T_C12", "kN*m")``; ``"T_C12"`` -> ``("T_C12", None)``."""
+    m = _UNIT.match(name)
+    if m:
+        return m.group(1), m.group(2)
+    return name.strip(), None
+
+
+def csv_siblings(path: Path) -> list[Path]:
+    """The sibling files ``name.<device>.csv`` of ``name.csv``, sorted."""
+    pattern = re.compile(re.escape(path.stem) + r"\.[A-Za-z0-9_\-]+" + re.escape(path.suffix) + "$")
+    return sorted(p for p in path.parent.iterdir()
+                  if p != path and pattern.match(p.name) and not p.name.startswith("."))
+
+
+def _sniff(path: Path, log: IssueLog) -> tuple[int, str, list[str], list[str], str]:
+    """Comment lines, separator, raw column names, first data row, decimal mark."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    text = head.decode("utf-8-sig", errors="replace")
+    lines = text.splitlines()
+    n_comment = 0
+    while n_comment < len(lines) and (not lines[n_comment].strip()
+                                      or lines[n_comment].lstrip().startswith("#")):
+        n_comment += 1
+    if n_comment >= len(lines):
+        raise log.fatal("unreadable", "the CSV file has no header line; expected "
+                        "'time,<channel> [unit],...'")
+    header = lines[n_comment]
+    counts = {s: header.count(s) for s in (",", ";", "\t")}
+    sep = max(counts, key=lambda s: counts[s])
+    if counts[sep] == 0:
+        raise log.fatal("unreadable", f"the CSV header {header[:80]!r} has no ',', ';' or tab "
+                        "separator; expected a time column and at least one channel")
+    names = next(csv.reader([header], delimiter=sep))
+    first = next(csv.reader([lines[n_comment + 1]], delimiter=sep)) \
+        if n_comment + 1 < len(lines) else []
+    decimal = "."
+    if sep != "," and any(_DECIMAL_COMMA.match(f) for f in first):
+        decimal = ","
+    return n_comment, sep, names, first, decimal
+
+
+def _time_column(names: list[str], log: IssueLog) -> int:
+    for i, raw in enumerate(names):
+        n, unit = split_header(raw)
+        if n.strip().lower() in _TIME_NAMES and unit in (None, "s"):
+            return i
+    if names and (names[0].strip() == "" or names[0].startswith("Unnamed")):
+        return 0
+    raise log.fatal("unreadable", f"no time column among {names[:8]}; expected a first column "
+                    "'time' (float seconds or ISO-8601)")
+
+
+def _iso_to_ns(col, log: IssueLog) -> np.ndarray:
+    """ISO-8601 strings (arrow array) -> int64 ns since the epoch (UTC)."""
+    import pyarrow as pa
+
+    for ty in (pa.timestamp("ns", tz="UTC"), pa.timestamp("ns")):
+        try:
+            return col.cast(ty).cast(pa.int64()).to_numpy(zero_copy_only=False)
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+            continue
+    import pandas as pd
+
+    try:
+        ts = pd.to_datetime(col.to_pandas(), format="ISO8601", utc=True)
+    except (ValueError, TypeError) as exc:
+        raise log.fatal("unreadable", f"time column holds a value that is neither float seconds "
+                        f"nor an ISO-8601 timestamp ({exc})") from None
+    return ts.to_numpy(dtype="datetime64[ns]").view(np.int64)
+
+
+def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
+             chunk_samples: int = 1 << 18, siblings: bool = True) -> list[DeviceGrid]:
+    """Read a CSV recording (and its sibling device files) into device grids.
+
+    Parameters
+    ----------
+    path : str
+    keep : callable
+        ``keep(channel_name) -> bool``: channels whose samples are kept.
+    log : IssueLog
+    chunk_samples : int
+        Rows parsed per batch (bounds the parser's working memory).
+    siblings : bool
+        Also read ``name.<device>.csv`` files beside ``name.csv``.
+
+    Returns
+    -------
+    list of DeviceGrid
+        One per file; the units are those of the header (``""`` when none).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise log.fatal("unreadable", "file not found")
+    files = [(p, p.stem)]
+    if siblings:
+        files += [(s, s.name[len(p.stem) + 1:-len(s.suffix)]) for s in csv_siblings(p)]
+    return [_read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples)
+            for f, dev in files]
+
+
+def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: IssueLog,
+              chunk_samples: int) -> DeviceGrid:
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    n_comment, sep, raw_names, first, decimal = _sniff(path, log)
+    ti = _time_column(raw_names, log)
+    if not first:
+        raise log.fatal("unreadable", f"{path.name}: the CSV file has a header but no data rows")
+    t_first = first[ti].strip() if ti < len(first) else ""
+    try:
+        float(t_first.replace(",", ".") if decimal == "," else t_first)
+        iso = False
+    except ValueError:
+        iso = True
+    col_names = [f"c{i}" for i in range(len(raw_names))]
+    parsed = [split_header(n) for n in raw_names]
+    all_channels = tuple(parsed[i][0] for i in range(len(parsed)) if i != ti)
+    kept = [i for i in range(len(parsed)) if i != ti and keep(parsed[i][0])]
+    dup = {parsed[i][0] for i in kept if [parsed[j][0] for j in kept].count(parsed[i][0]) > 1}
+    if dup:
+        raise log.fatal("unreadable", f"{path.name}: channel(s) {sorted(dup)} appear in more "
+                        "than one column")
+    types = {col_names[ti]: pa.string() if iso else pa.float64()}
+    types.update({col_names[i]: pa.float32() for i in kept})
+    row_bytes = max(8, len(sep.join(first)) + 1)
+    size = path.stat().st_size
+    cap = int(size / row_bytes * 1.05) + 1024
+    block = int(min(max(chunk_samples * row_bytes, 1 << 16), 1 << 26))
+    reader_opts = pacsv.ReadOptions(skip_rows=n_comment + 1, column_names=col_names,
+                                    block_size=block, use_threads=True)
+    parse_opts = pacsv.ParseOptions(delimiter=sep)
+    conv = pacsv.ConvertOptions(column_types=types, include_columns=[col_names[ti]]
+                                + [col_names[i] for i in kept], decimal_point=decimal,
+                                null_values=["", "nan", "NaN", "NAN", "null", "NULL", "NA",
+                                             "N/A", "-nan"], strings_can_be_null=True)
+    t_buf = np.empty(cap, dtype=np.int64 if iso else np.float64)
+    d_buf = np.empty((len(kept), cap), dtype=np.float32)
+    n = 0
+    try:
+        reader = pacsv.open_csv(path, read_options=reader_opts, parse_options=parse_opts,
+                                convert_options=conv)
+        for batch in reader:
+            m = batch.num_rows
+            if n + m > t_buf.size:
+                new_cap = max(n + m, int(t_buf.size * 1.25))
+                t_buf = np.concatenate([t_buf[:n], np.empty(new_cap - n, dtype=t_buf.dtype)])
+                nd = np.empty((len(kept), new_cap), dtype=np.float32)
+                nd[:, :n] = d_buf[:, :n]
+                d_buf = nd
+            tcol = batch.column(col_names[ti])
+            if iso:
+                t_buf[n:n + m] = _iso_to_ns(tcol, log)
+            else:
+                t_buf[n:n + m] = tcol.to_numpy(zero_copy_only=False)
+            for r, i in enumerate(kept):
+                d_buf[r, n:n + m] = batch.column(col_names[i]).to_numpy(zero_copy_only=False)
+            n += m
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, OSError) as exc:
+        raise log.fatal("unreadable", f"{path.name}: cannot parse the CSV file after row "
+                        f"{n + 1}: {exc}") from None
+    if n == 0:
+        raise log.fatal("unreadable", f"{path.name}: the CSV file has no data rows")
+    t_buf = t_buf[:n]
+    d_buf = d_buf[:, :n] if d_buf.shape[1] == n else np.ascontiguousarray(d_buf[:, :n])
+    if iso:
+        start_ns = int(t_buf.min())
+        t_rel = (t_buf - start_ns).astype(np.float64) / 1e9
+    else:
+        t_rel = t_buf
+        bad = ~np.isfinite(t_rel)
+        if bad.any():
+            log.add("non_monotonic", f"{path.name}: {int(bad.sum())} rows have no valid time; "
+                    "dropped", device=device, channel=",".join(parsed[i][0] for i in kept))
+            t_rel = t_rel[~bad]
+            d_buf = d_buf[:, ~bad]
+        start = float(t_rel.min())
+        # float seconds: an absolute epoch time (>= 1e8 s, 1973) keeps its origin
+        start_ns = int(round(start * 1e9))
+        t_rel -= start
+    return _to_grid(path, device, t_rel, d_buf, start_ns,
+                    tuple(parsed[i][0] for i in kept),
+                    tuple(parsed[i][1] or "" for i in kept), all_channels, log)
+
+
+_CHUNK = 1 << 20
+
+
+def _diffs(t: np.ndarray):
+    """Yield ``(offset, np.diff(t)[offset:offset + len])`` in chunks (bounded memory)."""
+    for s in range(0, t.size - 1, _CHUNK):
+        yield s, np.diff(t[s:min(s + _CHUNK + 1, t.size)])
+
+
+def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns: int,
+             channels: tuple[str, ...], units: tuple[str, ...], all_channels: tuple[str, ...],
+             log: IssueLog) -> DeviceGrid:
+    """Put rows with times ``t`` (s from the first) on a uniform grid; report what is off."""
+    names = ",".join(channels)
+    n = t.size
+    if n < 2:
+        raise log.fatal("unreadable", f"{path.name}: a single row; cannot tell the sample rate",
+                        channel=names)
+    back = np.concatenate([s + np.flatnonzero(d <= 0) for s, d in _diffs(t)])
+    if back.size:
+        shown = ", ".join(f"t={t[i + 1]:.6f} s after t={t[i]:.6f} s" for i in back[:3])
+        log.add("non_monotonic", f"{path.name}: time does not increase at {back.size} rows "
+                f"({shown}); rows sorted by time, repeated times dropped", channel=names,
+                t_start=float(t[back[0] + 1]), device=device)
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        data = data[:, order]
+        keep = np.concatenate(([True], np.diff(t) > 0))
+        if not keep.all():
+            t = t[keep]
+            data = data[:, keep]
+        n = t.size
+    dt = float(np.median(np.diff(t[:2_000_001])))  # the first 2e6 steps tell the rate
+    span = float(t[-1] - t[0])
+    rate = 1.0 / dt
+    if abs(span / (n - 1) - dt) <= 0.01 * dt:  # no gaps: the whole span is the best estimate
+        rate = (n - 1) / span
+    if abs(rate - round(rate)) <= 1e-5 * rate:
+        rate = float(round(rate))
+    if not math.isfinite(rate) or rate <= 0:
+        raise log.fatal("rate_mismatch", f"{path.name}: cannot tell the sample rate",
+                        channel=names)
+    n_odd = 0
+    first_odd: tuple[int, float] | None = None
+    big_at: list[np.ndarray] = []
+    big_len: list[np.ndarray] = []
+    for s, d in _diffs(t):
+        steps = np.rint(d * rate)
+        odd = (np.abs(d * rate - steps) > 0.25) | (steps < 1)
+        big = (steps > 1) & ~odd
+        n_odd += int(odd.sum())
+        if first_odd is None and odd.any():
+            j = int(np.flatnonzero(odd)[0])
+            first_odd = (s + j + 1, float(d[j]))
+        if big.any():
+            big_at.append(s + np.flatnonzero(big))
+            big_len.append(steps[big].astype(np.int64) - 1)
+    n_big = int(sum(b.size for b in big_at))
+    if n_odd > 0.01 * n or n_big > max(3, 0.01 * n):
+        if first_odd is None:
+            first_odd = (int(big_at[0][0]) + 1, float(t[big_at[0][0] + 1] - t[big_at[0][0]]))
+        raise log.fatal("rate_mismatch", f"{path.name}: the time steps are not one rate: the "
+                        f"median step is {dt:.6g} s ({rate:.6g} Hz) but {n_odd + n_big} of {n - 1} "
+                        f"steps differ (e.g. {first_odd[1]:.6g} s); expected one rate per file",
+                        channel=names, time=float(t[first_odd[0]]))
+    if n_odd:
+        log.add("non_monotonic", f"{path.name}: {n_odd} time steps are off the {rate:g} Hz grid "
+                f"by more than a quarter sample (first at t={t[first_odd[0]]:.6f} s); rows put "
+                "on the nearest grid point", channel=names, t_start=float(t[first_odd[0]]),
+                device=device)
+    gaps: list[tuple[int, int]] = []
+    time_buffer: np.ndarray | None = t if t.dtype == np.float64 else None
+    if n_big:
+        at = np.concatenate(big_at)
+        extra = np.concatenate(big_len)
+        shift = np.zeros(n, dtype=np.int64)
+        shift[at + 1] = extra
+        pos = np.arange(n, dtype=np.int64) + np.cumsum(shift)
+        grid = np.full((data.shape[0], int(pos[-1]) + 1), np.nan, dtype=np.float32)
+        grid[:, pos] = data
+        data = grid
+        for j in at.tolist():
+            gaps.append((int(pos[j]) + 1, int(pos[j + 1])))
+        time_buffer = None
+    return DeviceGrid(name=device, rate_hz=rate, start_ns=start_ns, channels=channels,
+                      units=units, data=data, gaps=gaps, all_channels=all_channels,
+                      time_buffer=time_buffer)

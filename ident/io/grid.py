@@ -1,0 +1,57 @@
+"""One device's samples on a uniform time grid, as the format readers hand them over.
+
+Internal to :mod:`ident.io`: the MCAP and CSV readers fill a :class:`DeviceGrid`
+each; :func:`ident.io.readers.read_recording` checks units, scans quality, converts
+to SI in place and wraps the arrays in DataFrames without copying.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["DeviceGrid"]
+
+
+@dataclass
+class DeviceGrid:
+    """Samples of one device on the grid ``start_ns + k / rate_hz``.
+
+    Attributes
+    ----------
+    name : str
+        Device name (MCAP topic, or the CSV file's device tag).
+    rate_hz : float
+    start_ns : int
+        Time of sample 0, ns (since the Unix epoch, or since an unknown origin for
+        CSV files with relative float seconds).
+    channels, units : tuple of str
+        The channels kept and their recorded units (``""`` when the file gives none).
+    data : ndarray, shape (n_channels, n), float32
+        Recorded values, NaN where missing; converted to SI in place later.
+    gaps : list of (int, int)
+        Dropouts as sample index ranges ``[i0, i1)``.
+    all_channels : tuple of str
+        Every channel the device records, kept or not.
+    time_buffer : ndarray of float64, optional
+        A scratch array of length n the index may be written into.
+    corrupt_ns : list of (int, int)
+        Time ranges (ns, same origin as ``start_ns``) lost to corrupt data and
+        already reported, so their gaps are not reported again as dropouts.
+    """
+
+    name: str
+    rate_hz: float
+    start_ns: int
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    data: np.ndarray
+    gaps: list[tuple[int, int]] = field(default_factory=list)
+    all_channels: tuple[str, ...] = ()
+    time_buffer: np.ndarray | None = None
+    corrupt_ns: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.data.shape[1])

@@ -1,0 +1,339 @@
+"""Read MCAP recordings of ``ident.SampleBlock`` messages into device grids.
+
+Reading goes through the official ``mcap`` library.  When the file has its summary
+(chunk index), each chunk is read and checked (CRC) on its own, so a corrupt chunk
+costs only its own time range; without a summary (a file cut short) the records are
+streamed in file order until the break.  Blocks are placed on each device's uniform
+grid at ``round((t0_ns - t_ref) * rate_hz / 1e9)``, so out-of-order blocks land in
+place and missing blocks stay NaN (dropouts, never interpolated).  Memory: the
+device arrays are allocated once, sized from the summary's message counts, and
+each block is copied straight in from the message bytes (float32).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .grid import DeviceGrid
+from .quality import RATE_TOLERANCE, IssueLog
+from .sampleblock import SCHEMA_NAME, Block, BlockDecodeError, make_decoder
+
+__all__ = ["read_mcap", "McapContent"]
+
+try:  # decompressors raise their own error types on corrupt chunks
+    from lz4.frame import LZ4FrameError as _LZ4Error  # type: ignore[attr-defined]
+except ImportError:  # pragma: no cover - lz4 is a dependency of mcap here
+    _LZ4Error = ValueError
+try:
+    from zstandard import ZstdError as _ZstdError  # type: ignore
+except ImportError:
+    _ZstdError = ValueError
+
+
+def _why(exc: BaseException) -> str:
+    text = str(exc).strip()
+    name = type(exc).__name__
+    if name == "EndOfFile":
+        return "unexpected end of file"
+    return f"{name}: {text}" if text else name
+
+
+def _failures() -> tuple[type[BaseException], ...]:
+    from mcap.exceptions import McapError
+
+    return (McapError, EOFError, struct.error, ValueError, KeyError, IndexError, OSError,
+            RuntimeError, MemoryError, UnicodeDecodeError, _LZ4Error, _ZstdError)
+
+
+@dataclass
+class McapContent:
+    """What :func:`read_mcap` found."""
+
+    grids: list[DeviceGrid]
+    metadata: dict[str, str] = field(default_factory=dict)
+    mill_toml: str | None = None
+
+
+class _Placer:
+    """Puts one device's blocks onto its uniform grid as they arrive."""
+
+    def __init__(self, topic: str, block: Block, keep: Callable[[str], bool],
+                 capacity: int) -> None:
+        self.topic = topic
+        self.rate = block.rate_hz
+        self.channels = block.channels
+        self.units = block.units
+        rows = [i for i, c in enumerate(block.channels) if keep(c)]
+        self.rows = np.asarray(rows, dtype=np.intp)
+        self.all_rows = len(rows) == len(block.channels)
+        self.ref = block.t0_ns
+        self.lo = 0
+        self.buf = np.full((len(rows), max(capacity, block.data.shape[1])), np.nan,
+                           dtype=np.float32)
+        self.pos: list[int] = []
+        self.n: list[int] = []
+        self.t0: list[int] = []
+
+    def put(self, block: Block) -> None:
+        n = block.data.shape[1]
+        pos = int(round((block.t0_ns - self.ref) * self.rate / 1e9))
+        i = pos - self.lo
+        k, cap = self.buf.shape
+        if i < 0 or i + n > cap:
+            new_lo = min(self.lo, pos)
+            new_cap = max(pos + n, self.lo + cap) - new_lo
+            if i + n > cap:
+                new_cap = max(new_cap, int(cap * 1.5))
+            new = np.full((k, new_cap), np.nan, dtype=np.float32)
+            new[:, self.lo - new_lo:self.lo - new_lo + cap] = self.buf
+            self.buf, self.lo = new, new_lo
+            i = pos - self.lo
+        if k:
+            self.buf[:, i:i + n] = block.data if self.all_rows else block.data[self.rows]
+        self.pos.append(pos)
+        self.n.append(n)
+        self.t0.append(block.t0_ns)
+
+    def finish(self, log: IssueLog, corrupt_ns: list[tuple[int, int]]) -> DeviceGrid:
+        pos = np.asarray(self.pos, dtype=np.int64)
+        n = np.asarray(self.n, dtype=np.int64)
+        t0 = np.asarray(self.t0, dtype=np.int64)
+        order = np.argsort(pos, kind="stable")
+        pos, n, t0 = pos[order], n[order], t0[order]
+        ends = np.maximum.accumulate(pos + n)
+        first, last = int(pos[0]), int(ends[-1])
+        rate = self.rate
+        kept = tuple(self.channels[i] for i in self.rows.tolist())
+        names = ",".join(kept)
+        if len(pos) > 1:
+            dt_samples = np.diff(t0) * rate / 1e9
+            ok = n[:-1] > 0
+            if ok.any():
+                ratio = float(np.median(dt_samples[ok] / n[:-1][ok]))
+                if abs(ratio - 1.0) > RATE_TOLERANCE:
+                    implied = rate / ratio
+                    raise log.fatal(
+                        "rate_mismatch",
+                        f"device {self.topic!r} declares rate_hz={rate:g} but its block "
+                        f"timestamps imply {implied:.6g} Hz (blocks of {int(np.median(n))} "
+                        f"samples every {np.median(np.diff(t0)) / 1e9:.6g} s); expected them "
+                        "to agree within 0.5 %", channel=names)
+        gaps: list[tuple[int, int]] = []
+        prev_end = ends[:-1]
+        nxt = pos[1:]
+        for j in np.flatnonzero(nxt > prev_end).tolist():
+            gaps.append((int(prev_end[j]) - first, int(nxt[j]) - first))
+        for j in np.flatnonzero(nxt < prev_end).tolist():
+            t = (int(nxt[j]) - first) / rate
+            log.add("non_monotonic",
+                    f"device {self.topic!r}: the block starting at t={t:.4f} s (relative to the "
+                    f"device start) overlaps the one before by {int(prev_end[j] - nxt[j])} "
+                    "samples; its time goes backwards; the later block in the file wins",
+                    channel=names, device=self.topic)
+        a, b = first - self.lo, last - self.lo
+        data = self.buf[:, a:b]
+        if self.buf.shape[1] > 1.1 * (b - a):
+            data = np.ascontiguousarray(data)
+        self.buf = np.empty((0, 0), dtype=np.float32)
+        start_ns = self.ref + int(round(first * 1e9 / rate))
+        return DeviceGrid(name=self.topic, rate_hz=rate, start_ns=start_ns, channels=kept,
+                          units=tuple(self.units[i] for i in self.rows.tolist()), data=data,
+                          gaps=gaps, all_channels=self.channels,
+                          corrupt_ns=list(corrupt_ns))
+
+
+class _Assembler:
+    """Decodes messages per MCAP channel and feeds the placers."""
+
+    def __init__(self, log: IssueLog, keep: Callable[[str], bool],
+                 counts: dict[int, int]) -> None:
+        self.log = log
+        self.keep = keep
+        self.counts = counts
+        self.decoders: dict[int, Callable[[bytes], Block] | None] = {}
+        self.topics: dict[int, str] = {}
+        self.placers: dict[str, _Placer] = {}
+        self.skip_topics: set[str] = set()
+        self.last_good_ns: int | None = None
+        self.first_ns: int | None = None
+        self.corrupt_ns: list[tuple[int, int]] = []
+        self.n_blocks = 0
+
+    def channel(self, channel, schema) -> None:
+        if channel.id in self.decoders:
+            return
+        self.topics[channel.id] = channel.topic
+        if schema is None or schema.name != SCHEMA_NAME:
+            name = schema.name if schema is not None else None
+            self.log.add("unknown_channel", f"topic {channel.topic!r} has schema {name!r}, not "
+                         f"{SCHEMA_NAME!r}; ignored", channel=None, device=channel.topic)
+            self.decoders[channel.id] = None
+            return
+        try:
+            self.decoders[channel.id] = make_decoder(schema.encoding, channel.message_encoding,
+                                                     schema.data)
+        except BlockDecodeError as exc:
+            self.log.add("corrupt", f"topic {channel.topic!r}: {exc}; ignored",
+                         device=channel.topic)
+            self.decoders[channel.id] = None
+
+    def message(self, msg) -> None:
+        decode = self.decoders.get(msg.channel_id)
+        if decode is None:
+            return
+        topic = self.topics[msg.channel_id]
+        if topic in self.skip_topics:
+            return
+        try:
+            block = decode(msg.data)
+        except BlockDecodeError as exc:
+            self.log.add("corrupt", f"topic {topic!r}: message logged at {msg.log_time} ns is "
+                         f"not a sample block ({exc}); skipped", device=topic)
+            self.corrupt_ns.append((msg.log_time, msg.log_time))
+            return
+        placer = self.placers.get(topic)
+        if placer is None:
+            if not any(self.keep(c) for c in block.channels):
+                # still note the device so that unknown/missing channels are reported
+                self.placers[topic] = _Placer(topic, block, self.keep, 0)
+                self.placers[topic].put(block)
+                self.skip_topics.add(topic)
+                return
+            cap = self.counts.get(msg.channel_id, 0) * block.data.shape[1]
+            placer = self.placers[topic] = _Placer(topic, block, self.keep, cap)
+        elif block.channels != placer.channels or block.rate_hz != placer.rate:
+            what = ("channels " + str(list(block.channels))) if block.channels != placer.channels \
+                else f"rate_hz={block.rate_hz:g}"
+            was = list(placer.channels) if block.channels != placer.channels \
+                else f"rate_hz={placer.rate:g}"
+            kind = "rate_mismatch" if block.channels == placer.channels else "unreadable"
+            raise self.log.fatal(kind, f"device {topic!r} changes within the recording: a block "
+                                 f"at t0_ns={block.t0_ns} has {what}, earlier blocks {was}; "
+                                 "expected one layout and rate per device (topic)",
+                                 channel=",".join(block.channels))
+        if abs(msg.log_time - block.t0_ns) * block.rate_hz > 1e9:
+            self.log.add("timestamp_mismatch", f"topic {topic!r}: log_time {msg.log_time} ns "
+                         f"differs from the block's t0_ns {block.t0_ns} by "
+                         f"{(msg.log_time - block.t0_ns) / 1e9:.6f} s; t0_ns is used",
+                         device=topic)
+        placer.put(block)
+        end = block.t0_ns + int(block.data.shape[1] * 1e9 / block.rate_hz)
+        self.last_good_ns = end if self.last_good_ns is None else max(self.last_good_ns, end)
+        self.first_ns = block.t0_ns if self.first_ns is None else min(self.first_ns,
+                                                                       block.t0_ns)
+        self.n_blocks += 1
+
+
+def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapContent:
+    """Read the sample blocks, metadata and mill attachment of an MCAP file.
+
+    Parameters
+    ----------
+    path : str
+    keep : callable
+        ``keep(channel_name) -> bool``: channels whose samples are kept.
+    log : IssueLog
+        Receives the findings (truncation, corrupt chunks, dropouts, overlaps).
+
+    Raises
+    ------
+    RecordingError
+        Not an MCAP file, no readable sample block, a rate that disagrees with the
+        timestamps, or a device whose channels change.
+    """
+    from mcap.data_stream import ReadDataStream
+    from mcap.reader import breakup_chunk, make_reader
+    from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    failures = _failures()
+    content = McapContent(grids=[])
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise log.fatal("unreadable", f"cannot open the file: {exc}") from None
+    with fh:
+        try:
+            reader = make_reader(fh, validate_crcs=True)
+        except failures as exc:
+            raise log.fatal("unreadable", f"not an MCAP file ({exc}); expected the MCAP magic "
+                            "bytes at the start") from None
+        summary = None
+        try:
+            summary = reader.get_summary()
+        except failures:
+            summary = None  # no footer/summary: a file cut short; stream it below
+        asm = _Assembler(log, keep, dict(summary.statistics.channel_message_counts)
+                         if summary is not None and summary.statistics is not None else {})
+        bad_chunks: list[tuple[int, int, int, BaseException]] = []
+        broke: tuple[int, int, BaseException] | None = None
+        if summary is not None and summary.chunk_indexes:
+            for ch in summary.channels.values():
+                asm.channel(ch, summary.schemas.get(ch.schema_id))
+            for ci in sorted(summary.chunk_indexes,
+                             key=lambda c: (c.message_start_time, c.chunk_start_offset)):
+                try:
+                    fh.seek(ci.chunk_start_offset + 1 + 8)
+                    chunk = Chunk.read(ReadDataStream(fh))
+                    records = breakup_chunk(chunk, validate_crc=True)
+                except failures as exc:
+                    bad_chunks.append((ci.message_start_time, ci.message_end_time,
+                                       ci.chunk_start_offset, exc))
+                    asm.corrupt_ns.append((ci.message_start_time, ci.message_end_time))
+                    continue
+                msgs = [r for r in records if isinstance(r, Message)]
+                msgs.sort(key=lambda m: m.log_time)
+                for m in msgs:
+                    asm.message(m)
+            try:
+                for md in reader.iter_metadata():
+                    if md.name == "ident.recording":
+                        content.metadata.update(md.metadata)
+                for att in reader.iter_attachments():
+                    if att.name == "mill.toml":
+                        content.mill_toml = bytes(att.data).decode("utf-8", errors="replace")
+            except failures as exc:
+                log.add("corrupt", f"metadata or attachments cannot be read ({exc}); ignored")
+        else:
+            fh.seek(0)
+            schemas: dict[int, object] = {}
+            pos = 0
+            try:
+                for rec in StreamReader(fh, validate_crcs=True).records:
+                    if isinstance(rec, Message):
+                        asm.message(rec)
+                    elif isinstance(rec, Schema):
+                        schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        asm.channel(rec, schemas.get(rec.schema_id))
+                    elif isinstance(rec, Metadata) and rec.name == "ident.recording":
+                        content.metadata.update(rec.metadata)
+                    elif isinstance(rec, Attachment) and rec.name == "mill.toml":
+                        content.mill_toml = bytes(rec.data).decode("utf-8", errors="replace")
+                    pos = fh.tell()
+            except failures as exc:
+                broke = (pos, fh.seek(0, 2), exc)
+        if asm.n_blocks == 0:
+            why = (f"the file breaks at byte {broke[0]} of {broke[1]} ({_why(broke[2])})"
+                   if broke else
+                   "it holds no readable ident.SampleBlock message")
+            raise log.fatal("unreadable", f"nothing readable: {why}")
+        origin = min(p.ref + int(round(min(p.pos) * 1e9 / p.rate))
+                     for p in asm.placers.values())
+        for a, b, offset, exc in bad_chunks:
+            log.add("corrupt", f"the chunk at byte {offset} cannot be read "
+                    f"({_why(exc)}); its samples from t={(a - origin) / 1e9:.4f} s "
+                    f"to t={(b - origin) / 1e9:.4f} s are missing (NaN); the rest is read",
+                    t_start=(a - origin) / 1e9, t_end=(b - origin) / 1e9)
+        if broke is not None:
+            t_last = (asm.last_good_ns - origin) / 1e9
+            log.add("truncated", f"the file breaks off at byte {broke[0]} of {broke[1]} "
+                    f"({_why(broke[2])}); read up to the last good block, "
+                    f"which ends at t={t_last:.4f} s; the rest is lost", t_start=t_last)
+        for placer in asm.placers.values():
+            content.grids.append(placer.finish(log, asm.corrupt_ns))
+    return content
