@@ -51,9 +51,12 @@ class Stepper:
     interval: float
     n_sub: int
     compiled: bool
+    stage_inputs: bool = False
 
 
-def _rk4_interval(drv: Driveline, T: float, n_sub: int) -> ca.Function:
+def _rk4_interval(drv: Driveline, T: float, n_sub: int, stage_inputs: bool = False) -> ca.Function:
+    if stage_inputs:
+        return _rk4_interval_stages(drv, T, n_sub)
     nx = drv.n_states
     x0 = ca.SX.sym("x0", nx)
     u0 = ca.SX.sym("u0", 1)
@@ -80,6 +83,30 @@ def _rk4_interval(drv: Driveline, T: float, n_sub: int) -> ca.Function:
         x = step(x, u0, u1, p, t0 + i * h, i / n_sub)
     y = drv.out(x, u1, p, t0 + T)
     return ca.Function("interval", [x0, u0, u1, p, t0], [x, y])
+
+
+def _rk4_interval_stages(drv: Driveline, T: float, n_sub: int) -> ca.Function:
+    """RK4 over one interval with the load given at every stage point (2*n_sub + 1 values)."""
+    nx = drv.n_states
+    x0 = ca.SX.sym("x0", nx)
+    U = ca.SX.sym("U", 2 * n_sub + 1)
+    p = ca.SX.sym("p", drv.n_params)
+    t0 = ca.SX.sym("t0")
+    h = T / n_sub
+    xs = ca.SX.sym("xs", nx)
+    ts = ca.SX.sym("ts")
+    ua, um, ub = ca.SX.sym("ua"), ca.SX.sym("um"), ca.SX.sym("ub")
+    k1 = drv.rhs(xs, ua, p, ts)
+    k2 = drv.rhs(xs + 0.5 * h * k1, um, p, ts + 0.5 * h)
+    k3 = drv.rhs(xs + 0.5 * h * k2, um, p, ts + 0.5 * h)
+    k4 = drv.rhs(xs + h * k3, ub, p, ts + h)
+    step = ca.Function("rk4s", [xs, ua, um, ub, p, ts],
+                       [xs + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    x = x0
+    for i in range(n_sub):
+        x = step(x, U[2 * i], U[2 * i + 1], U[2 * i + 2], p, t0 + i * h)
+    y = drv.out(x, U[2 * n_sub], p, t0 + T)
+    return ca.Function("interval_stages", [x0, U, p, t0], [x, y])
 
 
 def _compile(fn: ca.Function, name: str) -> Any:
@@ -110,7 +137,7 @@ def _compile(fn: ca.Function, name: str) -> Any:
 
 
 def make_stepper(drv: Driveline, *, interval: float, n_sub: int, chunk: int = 2000,
-                 compile: bool = True) -> Stepper:
+                 compile: bool = True, stage_inputs: bool = False) -> Stepper:
     """Build (and compile) the chunk integrator of a driveline.
 
     Parameters
@@ -124,15 +151,28 @@ def make_stepper(drv: Driveline, *, interval: float, n_sub: int, chunk: int = 20
         Intervals per call.
     compile : bool
         Compile to C (falls back to CasADi's VM when no compiler works).
+    stage_inputs : bool
+        Take the load at every RK4 stage point (``2*n_sub + 1`` values per
+        interval, see :func:`stage_times`) instead of interpolating it linearly
+        between samples: exact for any load shape.
     """
-    f = _rk4_interval(drv, interval, n_sub)
-    # mapaccum: x accumulated; u0, u1, t0 mapped; p broadcast
-    F = f.mapaccum("sim", chunk, [0], [0])
+    f = _rk4_interval(drv, interval, n_sub, stage_inputs)
+    # mapaccum: x accumulated; inputs mapped; p broadcast
+    F = f.mapaccum("sim_stages" if stage_inputs else "sim", chunk, [0], [0])
     if compile:
         ext = _compile(F, "ident_sim")
         if ext is not None:
-            return Stepper(fn=ext, chunk=chunk, interval=interval, n_sub=n_sub, compiled=True)
-    return Stepper(fn=F, chunk=chunk, interval=interval, n_sub=n_sub, compiled=False)
+            return Stepper(fn=ext, chunk=chunk, interval=interval, n_sub=n_sub, compiled=True,
+                           stage_inputs=stage_inputs)
+    return Stepper(fn=F, chunk=chunk, interval=interval, n_sub=n_sub, compiled=False,
+                   stage_inputs=stage_inputs)
+
+
+def stage_times(stepper: Stepper, n_samples: int, t0: float = 0.0) -> np.ndarray:
+    """Times of the RK4 stage points, shape (n_samples - 1, 2*n_sub + 1), s."""
+    h2 = stepper.interval / stepper.n_sub / 2.0
+    k = np.arange(n_samples - 1)[:, None] * stepper.interval
+    return t0 + k + np.arange(2 * stepper.n_sub + 1)[None, :] * h2
 
 
 def integrate(stepper: Stepper, x0: np.ndarray, u: np.ndarray, p: np.ndarray,
@@ -144,8 +184,9 @@ def integrate(stepper: Stepper, x0: np.ndarray, u: np.ndarray, p: np.ndarray,
     stepper : Stepper
     x0 : ndarray, shape (nx,)
         State at the first sample.
-    u : ndarray, shape (N,)
-        Load torque at each output sample (N*m).
+    u : ndarray, shape (N,) or (N - 1, 2*n_sub + 1)
+        Load torque (N*m) at each output sample, or, for a stepper with
+        ``stage_inputs``, at the stage points of each interval (:func:`stage_times`).
     p : ndarray, shape (np,)
     t0 : float
         Time of the first sample, s.
@@ -157,6 +198,8 @@ def integrate(stepper: Stepper, x0: np.ndarray, u: np.ndarray, p: np.ndarray,
     Y_end : ndarray, shape (N - 1, ny)
         Outputs at samples 1..N-1 (the caller evaluates sample 0).
     """
+    if stepper.stage_inputs:
+        return _integrate_stages(stepper, x0, np.asarray(u, dtype=float), p, t0)
     N = len(u)
     C = stepper.chunk
     T = stepper.interval
@@ -184,3 +227,30 @@ def integrate(stepper: Stepper, x0: np.ndarray, u: np.ndarray, p: np.ndarray,
         k += n
     Y = np.concatenate(ys, axis=0) if ys else np.empty((0, 0))
     return X, Y
+
+
+def _integrate_stages(stepper: Stepper, x0: np.ndarray, U: np.ndarray, p: np.ndarray,
+                      t0: float) -> tuple[np.ndarray, np.ndarray]:
+    N = U.shape[0] + 1
+    C = stepper.chunk
+    T = stepper.interval
+    X = np.empty((N, len(x0)))
+    X[0] = x0
+    ys = []
+    x = np.asarray(x0, dtype=float)
+    pd = ca.DM(p)
+    k = 0
+    while k < N - 1:
+        n = min(C, N - 1 - k)
+        Uc = np.empty((C, U.shape[1]))
+        Uc[:n] = U[k:k + n]
+        Uc[n:] = U[k + n - 1, -1]
+        tt = t0 + (k + np.arange(C)) * T
+        Xc, Yc = stepper.fn(x, Uc.T, pd, tt[None, :])
+        Xc = np.asarray(Xc)
+        Yc = np.asarray(Yc)
+        X[k + 1:k + 1 + n] = Xc[:, :n].T
+        ys.append(Yc[:, :n].T)
+        x = Xc[:, n - 1]
+        k += n
+    return X, (np.concatenate(ys, axis=0) if ys else np.empty((0, 0)))

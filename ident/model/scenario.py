@@ -84,8 +84,9 @@ def _ramp(s: np.ndarray) -> np.ndarray:
 
 
 def load_profile(scenario: Scenario, t: np.ndarray) -> np.ndarray:
-    """Rolling torque at times ``t`` (s), N*m reduced, positive against rotation."""
-    t = np.asarray(t, dtype=float)
+    """Rolling torque at times ``t`` (s, any shape), N*m reduced, positive against rotation."""
+    t_in = np.asarray(t, dtype=float)
+    t = t_in.ravel()
     T = np.full_like(t, scenario.idle_torque)
     rng = np.random.default_rng(scenario.seed)
     for bar in scenario.bars:
@@ -101,7 +102,7 @@ def load_profile(scenario: Scenario, t: np.ndarray) -> np.ndarray:
                                                    + ph[:, None]), axis=0)
             level = level * (1.0 + scenario.fluctuation * wav)
         T = T + on * level
-    return T
+    return T.reshape(t_in.shape)
 
 
 def nominal_torque(mill: Mill) -> float:

@@ -22,7 +22,7 @@ from ..description import Mill, Quantity
 from ..io.recording import RawDevice
 from ..units import to_si_factor
 from .dynamics import Driveline, ModelOptions, build_driveline
-from .integrate import integrate, make_stepper
+from .integrate import integrate, make_stepper, stage_times
 from .scenario import Scenario, load_profile
 
 __all__ = ["SimResult", "simulate", "sensor_devices", "taf_table", "DEFAULT_T0_NS",
@@ -108,13 +108,14 @@ def simulate(mill: Mill, scenario: Scenario, *, options: ModelOptions | None = N
         rate_hz = 10_000.0 if (options.bearings and mill.bearings) else 2_000.0
     T = 1.0 / rate_hz
     n_sub = max(1, math.ceil(T / max_step - 1e-9))
-    stepper = make_stepper(drv, interval=T, n_sub=n_sub, compile=compile)
+    stepper = make_stepper(drv, interval=T, n_sub=n_sub, compile=compile, stage_inputs=True)
     N = int(round(scenario.duration * rate_hz)) + 1
     t = np.arange(N) * T
     u = load_profile(scenario, t)
+    u_stages = load_profile(scenario, stage_times(stepper, N)).reshape(N - 1, -1)
     p = drv.params(dict(params or {}))
     x_start = drv.x_idle.copy() if x0 is None else np.asarray(x0, dtype=float)
-    X, Y_end = integrate(stepper, x_start, u, p, 0.0)
+    X, Y_end = integrate(stepper, x_start, u_stages, p, 0.0)
     y0 = np.asarray(drv.out(x_start, u[:1], p, 0.0)).ravel()
     Y = np.vstack([y0[None, :], Y_end])
     idx = pd.Index(t, name="time_s")
