@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from ..description import Mill
-from ..errors import IdentError
+from ..errors import DataQualityWarning, IdentError
 from .outcome import RecordingOutcome, jsonable
 
 __all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn"]
@@ -147,6 +147,8 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                 raise _Failed(name, exc) from exc
             finally:
                 for w in caught:
+                    if name == "read" and issubclass(w.category, DataQualityWarning):
+                        continue  # the reader lists every finding in Recording.issues too
                     quality.append({"stage": name, "kind": f"warning:{w.category.__name__}",
                                     "message": str(w.message), "channel": None,
                                     "t_start": None, "t_end": None, "fatal": False})

@@ -1,0 +1,428 @@
+"""Assemble the wear trend report of a results store, one section per mill.
+
+:func:`analyse_mill` turns a mill's stored results (DataFrames of
+:func:`ident.store.load_results`) into plain values: per element and bearing a
+trend, its forecasts and a traffic-light status; :func:`build_report` renders
+those into one self-contained HTML file (:mod:`ident.report.html`).
+
+Status of an element or bearing (the traffic light)
+---------------------------------------------------
+The *current value* is the trend line at the last recording when three or more
+recordings give a trend, otherwise the last identified value.
+
+* ``critical`` (red): the current value is at or above the critical limit, or the
+  latest wear diagnosis says ``critical``.
+* ``worn`` (amber): the current value is at or above the worn limit, the latest
+  diagnosis says ``worn``, or the 95 % interval of the time the trend reaches a
+  limit begins within ``horizon_days`` of the last recording.
+* ``good`` (green): none of these.  ``unknown`` (grey): no usable values.
+
+Limits are the mill file's ``gap_worn``/``gap_critical`` (elements, rad reduced,
+shown in mm where the element has a ``radius``, else mrad) and
+``clearance_worn``/``clearance_critical`` (bearings, m, shown in mm).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+import numpy as np
+import pandas as pd
+
+from ..description import Mill
+from ..io.millfile import load_mill, parse_mill
+from ..store import Store, load_results
+from . import figures as F
+from .trend import Crossing, crossing, fit_trend
+
+__all__ = ["Assessment", "MillSection", "ReportSummary", "analyse_mill", "build_report"]
+
+DAY_NS = 86_400 * 10**9
+_Z95 = 1.959963984540054
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """Trend, forecast and status of one element's gap or one bearing's clearance.
+
+    Attributes
+    ----------
+    kind : {'element', 'bearing'}
+    id, label : str
+    unit : str
+        Display unit of the values below (``mm`` or ``mrad``).
+    status : str
+        ``good``, ``worn``, ``critical`` or ``unknown``.
+    reason : str
+        Why, in a few words.
+    now, now_lo, now_hi : float
+        Current value and its 95 % interval (NaN when unknown).
+    worn, critical : float
+        Limits.
+    slope_per_30d : float
+        Trend slope per 30 days (NaN without a trend).
+    p_increasing : float
+        One-sided p-value of the trend rising.
+    worn_at, critical_at : Crossing or None
+        When the trend reaches each limit, in days since :attr:`MillSection.t_ref_ns`.
+    classifier : str or None
+        Latest state from the wear diagnosis.
+    n : int
+        Recordings behind the trend.
+    identifiable : bool
+        False when most fits flag the element not identifiable from the channels.
+    """
+
+    kind: str
+    id: str
+    label: str
+    unit: str
+    status: str
+    reason: str
+    now: float
+    now_lo: float
+    now_hi: float
+    worn: float
+    critical: float
+    slope_per_30d: float
+    p_increasing: float
+    worn_at: Crossing | None
+    critical_at: Crossing | None
+    classifier: str | None
+    n: int
+    identifiable: bool = True
+
+
+@dataclass(frozen=True)
+class MillSection:
+    """Everything the report shows about one mill."""
+
+    name: str
+    mill: Mill | None
+    t_ref_ns: int
+    t_last_ns: int
+    n_done: int
+    n_failed: int
+    n_transients: int
+    n_bites: int
+    assessments: tuple[Assessment, ...]
+    figures: dict[str, str] = field(default_factory=dict)
+    tables: dict[str, pd.DataFrame] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ReportSummary:
+    """What :func:`build_report` wrote.
+
+    Attributes
+    ----------
+    path : Path
+    mills : tuple of str
+    n_recordings, n_failed : int
+    assessments : tuple of (str, Assessment)
+        ``(mill name, assessment)`` for every element and bearing.
+    elapsed_s : float
+    """
+
+    path: Path
+    mills: tuple[str, ...]
+    n_recordings: int
+    n_failed: int
+    assessments: tuple[tuple[str, Assessment], ...]
+    elapsed_s: float
+
+
+# ---- analysis -----------------------------------------------------------------------
+def _days(t0_ns: pd.Series, t_ref_ns: int) -> np.ndarray:
+    return (t0_ns.astype("float64").to_numpy() - t_ref_ns) / DAY_NS
+
+
+def _status(now: float, worn: float, critical: float, classifier: str | None,
+            worn_at: Crossing | None, crit_at: Crossing | None, t_last: float,
+            horizon: float) -> tuple[str, str]:
+    if not math.isfinite(now) and classifier is None:
+        return "unknown", "no identified values"
+    if math.isfinite(now) and now >= critical:
+        return "critical", "above the critical limit"
+    if classifier == "critical":
+        return "critical", "diagnosed critical"
+    if math.isfinite(now) and now >= worn:
+        return "worn", "above the worn limit"
+    if classifier == "worn":
+        return "worn", "diagnosed worn"
+    for c, name in ((crit_at, "critical"), (worn_at, "worn")):
+        if c is not None and c.trend and math.isfinite(c.t_early) and \
+                c.t_early <= t_last + horizon:
+            return "worn", f"may reach the {name} limit within {horizon:.0f} days"
+    return "good", "below the limits"
+
+
+def _assess(kind: str, id_: str, label: str, unit: str, days: np.ndarray, y: np.ndarray,
+            lo: np.ndarray, hi: np.ndarray, worn: float, critical: float,
+            classifier: str | None, horizon: float, identifiable: bool = True,
+            ) -> tuple[Assessment, F.GapPanel]:
+    sigma = (hi - lo) / (2 * _Z95)
+    ok = np.isfinite(days) & np.isfinite(y)
+    tr = fit_trend(days[ok], y[ok], sigma=sigma[ok]) if ok.sum() >= 2 else None
+    trend = tr if tr is not None and tr.n >= 3 else None
+    w_at = crossing(trend, worn) if trend is not None else None
+    c_at = crossing(trend, critical) if trend is not None else None
+    if trend is not None:
+        t_last = trend.t_last
+        now = float(trend.predict(t_last))
+        blo, bhi = trend.band(t_last)
+        now_lo, now_hi = float(blo), float(bhi)
+    elif ok.any():
+        i = int(np.argmax(np.where(ok, days, -np.inf)))
+        t_last, now, now_lo, now_hi = float(days[i]), float(y[i]), float(lo[i]), float(hi[i])
+    else:
+        t_last, now, now_lo, now_hi = 0.0, math.nan, math.nan, math.nan
+    if not identifiable:
+        status, reason = ("unknown", "not identifiable from the measured channels") \
+            if classifier is None else (classifier, "diagnosed (gap not identifiable)")
+    else:
+        status, reason = _status(now, worn, critical, classifier, w_at, c_at, t_last, horizon)
+    a = Assessment(kind=kind, id=id_, label=label, unit=unit, status=status, reason=reason,
+                   now=now, now_lo=now_lo, now_hi=now_hi, worn=worn, critical=critical,
+                   slope_per_30d=30.0 * trend.slope if trend is not None else math.nan,
+                   p_increasing=trend.p_increasing if trend is not None else math.nan,
+                   worn_at=w_at, critical_at=c_at, classifier=classifier, n=int(ok.sum()),
+                   identifiable=identifiable)
+    title = f"{id_}" + (f" — {label}" if label else "") + f"  [{status.upper()}]"
+    panel = F.GapPanel(title=title, unit=unit, t=days[ok], y=y[ok], lo=lo[ok], hi=hi[ok],
+                       worn=worn, critical=critical, trend=trend, worn_at=w_at,
+                       critical_at=c_at, status=status, horizon=horizon,
+                       note="" if identifiable else "not identifiable: for reference only")
+    return a, panel
+
+
+def _latest_state(diag: pd.DataFrame, kind: str, target: str) -> str | None:
+    d = diag[(diag["kind"] == kind) & (diag["target"] == target) & diag["state"].notna()]
+    if d.empty:
+        return None
+    return str(d.sort_values(["t0_ns", "recording_pk"]).iloc[-1]["state"])
+
+
+def _mill_of(name: str, recs: pd.DataFrame, mills: pd.DataFrame,
+             given: Mill | None) -> Mill | None:
+    if given is not None and given.name == name:
+        return given
+    shas = recs["mill_sha256"].tolist()
+    texts = dict(zip(mills["sha256"], mills["text"]))
+    for sha in reversed(shas):
+        if sha in texts:
+            return parse_mill(texts[sha], path=f"<store: mill file {sha[:12]}>")
+    return None
+
+
+def analyse_mill(name: str, res: dict[str, pd.DataFrame], *, mill: Mill | None = None,
+                 horizon_days: float = 30.0, figures: bool = True) -> MillSection:
+    """Trends, forecasts, statuses, tables and figures of one mill's results.
+
+    Parameters
+    ----------
+    name : str
+        Mill name as stored.
+    res : dict of DataFrame
+        :func:`ident.store.load_results` output.
+    mill : Mill, optional
+        The description for the limits; default the mill file stored with the
+        latest recording.
+    horizon_days : float
+        Look-ahead of the amber status and of the plotted trend, days.
+    figures : bool
+        Render the plots (False for tests of the numbers only).
+    """
+    def of(df: pd.DataFrame) -> pd.DataFrame:
+        return df[df["mill_name"] == name]
+
+    recs = of(res["recordings"]).copy()
+    done = recs[recs["status"] == "done"]
+    failed = recs[recs["status"] == "failed"]
+    mill = _mill_of(name, recs, res["mills"], mill)
+    t0s = recs["t0_ns"].dropna()
+    t_ref = int(t0s.min()) if len(t0s) else 0
+    t_last = int(t0s.max()) if len(t0s) else 0
+    done_pk = set(done["id"])
+    er = of(res["element_results"])
+    er = er[er["transient_idx"].isna() & er["recording_pk"].isin(done_pk)]
+    er = er.merge(recs[["id", "t0_ns"]].rename(columns={"id": "recording_pk"}), on="recording_pk")
+    diag = of(res["diagnoses"]).merge(recs[["id", "t0_ns"]].rename(columns={"id": "recording_pk"}),
+                                      on="recording_pk")
+    tr = of(res["transients"])
+    assessments: list[Assessment] = []
+    panels: list[F.GapPanel] = []
+    bpanels: list[F.GapPanel] = []
+    figs: dict[str, str] = {}
+    notes: dict[str, str] = {}
+    tables: dict[str, pd.DataFrame] = {}
+
+    if mill is not None:
+        for e in mill.elements:
+            d = er[er["element"] == e.id].sort_values("t0_ns")
+            cls = _latest_state(diag, "element", e.id)
+            if d.empty and cls is None:
+                continue
+            f, unit = (e.gap_mm(1.0), "mm") if e.radius else (1e3, "mrad")
+            days = _days(d["t0_ns"], t_ref)
+            ident = d["identifiable"].dropna()
+            identifiable = bool(ident.mean() >= 0.5) if len(ident) else True
+            a, p = _assess("element", e.id, e.label, unit, days,
+                           d["gap"].to_numpy(float) * f, d["gap_ci_lo"].to_numpy(float) * f,
+                           d["gap_ci_hi"].to_numpy(float) * f, e.gap_worn * f,
+                           e.gap_critical * f, cls, horizon_days, identifiable)
+            assessments.append(a)
+            panels.append(p)
+        bd = diag[(diag["kind"] == "bearing")]
+        for b in mill.bearings:
+            d = bd[(bd["target"] == b.id)].sort_values("t0_ns")
+            if d.empty:
+                continue
+            y = d["clearance"].to_numpy(float) * 1e3
+            nan = np.full_like(y, np.nan)
+            a, p = _assess("bearing", b.id, f"bearing of {b.mesh}", "mm",
+                           _days(d["t0_ns"], t_ref), y, nan, nan, b.clearance_worn * 1e3,
+                           b.clearance_critical * 1e3, _latest_state(diag, "bearing", b.id),
+                           horizon_days)
+            assessments.append(a)
+            bpanels.append(p)
+    else:
+        notes["mill"] = ("the mill file of these results is not in the store: limits and "
+                         "trends are left out")
+    rank = {"critical": 0, "worn": 1, "unknown": 3, "good": 2}
+    panels.sort(key=lambda p: rank.get(p.status, 3))
+    if figures and panels:
+        figs["gaps"] = F.gap_trends(panels, t0_ns=t_ref)
+    if figures and bpanels:
+        figs["bearings"] = F.gap_trends(bpanels, t0_ns=t_ref)
+
+    # TAF against static torque (seed Fig. 4), motor shaft first
+    taf = of(res["taf"])
+    taf = taf[taf["recording_pk"].isin(done_pk) & taf["taf"].notna()]
+    if not taf.empty:
+        taf = taf.merge(recs[["id", "t0_ns"]].rename(columns={"id": "recording_pk"}),
+                        on="recording_pk")
+        motor_side = [e.id for e in mill.elements if e.from_ == mill.motor.mass] if mill else []
+        present = list(taf["element"].value_counts().index)
+        el = next((e for e in motor_side if e in present), present[0])
+        d = taf[taf["element"] == el]
+        if figures:
+            figs["taf"] = F.taf_vs_static(d["static_torque"].to_numpy(float) / 1e3,
+                                          d["peak_torque"].to_numpy(float) / 1e3,
+                                          d["taf"].to_numpy(float), _days(d["t0_ns"], t_ref),
+                                          t0_ns=t_ref, element=el)
+        notes["taf_element"] = el
+        g = taf.groupby("element")["taf"]
+        tables["taf"] = pd.DataFrame({"bites": g.size(), "median": g.median(),
+                                      "p95": g.quantile(0.95), "max": g.max()}).reset_index()
+
+    # natural-frequency amplitude and phase trends
+    ft = of(res["features"])
+    ft = ft[ft["recording_pk"].isin(done_pk) & ft["transient_idx"].isna()]
+    if not ft.empty and {"amplitude_ratio", "phase_shift_deg"} & set(ft["name"]):
+        ft = ft.merge(recs[["id", "t0_ns"]].rename(columns={"id": "recording_pk"}),
+                      on="recording_pk")
+        wide = ft.pivot_table(index=["recording_pk", "t0_ns", "idx"], columns="name",
+                              values="value", aggfunc="first").reset_index()
+        series = []
+        for idx, d in wide.groupby("idx"):
+            fr = d["frequencies_hz"].median() if "frequencies_hz" in d else math.nan
+            lab = f"{fr:.0f} Hz" if math.isfinite(fr) else f"mode {int(idx) + 1}"
+            amp = d["amplitude_ratio"].to_numpy(float) if "amplitude_ratio" in d else \
+                np.full(len(d), np.nan)
+            ph = d["phase_shift_deg"].to_numpy(float) if "phase_shift_deg" in d else \
+                np.full(len(d), np.nan)
+            series.append((lab, _days(d["t0_ns"], t_ref), amp, ph))
+        if figures:
+            figs["modes"] = F.mode_trends(series, t0_ns=t_ref)
+
+    # data quality, solver status, failures
+    q = of(res["quality_issues"])
+    if not q.empty:
+        g = q.groupby("kind")
+        tables["quality"] = pd.DataFrame({
+            "findings": g.size(), "recordings": g["recording_pk"].nunique(),
+            "channels": g["channel"].agg(lambda s: ", ".join(sorted(set(s.dropna())))[:120]),
+        }).reset_index().sort_values("findings", ascending=False)
+    fits = of(res["fits"])
+    fits = fits[fits["transient_idx"].isna()]
+    if not fits.empty:
+        g = fits.groupby(fits["solver_status"].fillna("(none)"))
+        tables["solver"] = pd.DataFrame({"fits": g.size(), "median nrmse": g["nrmse"].median(),
+                                         "worst nrmse": g["nrmse"].max()}).reset_index()
+        worse = fits[fits["nrmse"] > fits["nrmse_linear"]]
+        notes["worse_than_linear"] = str(len(worse))
+    tables["failed"] = failed.assign(
+        processed=pd.to_datetime(failed["finished_at"]).dt.strftime("%Y-%m-%d %H:%M"))[
+        ["file_name", "stage", "error_kind", "error", "processed"]].sort_values("file_name")
+    return MillSection(name=name, mill=mill, t_ref_ns=t_ref, t_last_ns=t_last,
+                       n_done=len(done), n_failed=len(failed), n_transients=len(tr),
+                       n_bites=int((tr["kind"] == "bite").sum()) if len(tr) else 0,
+                       assessments=tuple(assessments), figures=figs, tables=tables, notes=notes)
+
+
+def _safe_url(store: str | Store) -> str:
+    if isinstance(store, Store):
+        return store.url
+    import sqlalchemy as sa
+
+    from ..store.store import normalize_url
+
+    return sa.engine.make_url(normalize_url(store)).render_as_string(hide_password=True)
+
+
+def build_report(store: str | Store, out: str | Path, *, mill: Mill | str | Path | None = None,
+                 horizon_days: float = 30.0, title: str = "Driveline wear trend report",
+                 now: dt.datetime | None = None) -> ReportSummary:
+    """Write the wear trend report of a results store as one self-contained HTML file.
+
+    Parameters
+    ----------
+    store : str or Store
+        SQLAlchemy URL of an existing store, or an open store.
+    out : path
+        The HTML file to write (folders are created; written atomically).
+    mill : Mill or path, optional
+        Report only this mill, with the limits of this description.
+    horizon_days : float
+        Look-ahead of the amber status, days.
+    title : str
+    now : datetime, optional
+        "Generated at" time (default: now, UTC).
+
+    Returns
+    -------
+    ReportSummary
+
+    Raises
+    ------
+    StoreError
+        The store does not exist or cannot be read.
+    MillFileError
+        ``mill`` is a path to a bad mill file.
+    """
+    from .html import render
+
+    t_start = time.perf_counter()
+    if mill is not None and not isinstance(mill, Mill):
+        mill = load_mill(mill)
+    res = load_results(store, mill=mill.name if mill is not None else None)
+    names = sorted(res["recordings"]["mill_name"].unique()) if len(res["recordings"]) else []
+    sections = [analyse_mill(n, res, mill=mill, horizon_days=horizon_days) for n in names]
+    html = render(sections, runs=res["runs"], title=title,
+                  store=_safe_url(store),
+                  now=now or dt.datetime.now(dt.timezone.utc))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(html, encoding="utf-8")
+    tmp.replace(out)
+    recs = res["recordings"]
+    return ReportSummary(path=out, mills=tuple(names), n_recordings=len(recs),
+                         n_failed=int((recs["status"] == "failed").sum()) if len(recs) else 0,
+                         assessments=tuple((s.name, a) for s in sections for a in s.assessments),
+                         elapsed_s=time.perf_counter() - t_start)
