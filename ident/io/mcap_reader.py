@@ -159,7 +159,6 @@ class _Assembler:
         self.placers: dict[str, _Placer] = {}
         self.skip_topics: set[str] = set()
         self.last_good_ns: int | None = None
-        self.first_ns: int | None = None
         self.corrupt_ns: list[tuple[int, int]] = []
         self.n_blocks = 0
 
@@ -202,6 +201,7 @@ class _Assembler:
                 self.placers[topic] = _Placer(topic, block, self.keep, 0)
                 self.placers[topic].put(block)
                 self.skip_topics.add(topic)
+                self._count(block)
                 return
             cap = self.counts.get(msg.channel_id, 0) * block.data.shape[1]
             placer = self.placers[topic] = _Placer(topic, block, self.keep, cap)
@@ -221,10 +221,11 @@ class _Assembler:
                          f"{(msg.log_time - block.t0_ns) / 1e9:.6f} s; t0_ns is used",
                          device=topic)
         placer.put(block)
+        self._count(block)
+
+    def _count(self, block: Block) -> None:
         end = block.t0_ns + int(block.data.shape[1] * 1e9 / block.rate_hz)
         self.last_good_ns = end if self.last_good_ns is None else max(self.last_good_ns, end)
-        self.first_ns = block.t0_ns if self.first_ns is None else min(self.first_ns,
-                                                                       block.t0_ns)
         self.n_blocks += 1
 
 

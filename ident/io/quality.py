@@ -113,7 +113,7 @@ class IssueLog:
         self._dropped.clear()
         if warn:
             for issue in self.issues:
-                warnings.warn(str(issue), DataQualityWarning, stacklevel=3)
+                warnings.warn(str(issue), DataQualityWarning, stacklevel=4)
         return tuple(self.issues)
 
 

@@ -316,9 +316,9 @@ def align_devices(rec: Recording, *, rate_hz: float | None = None,
                 y[~valid | ((frac > 0) & (i + 1 >= m))] = np.nan
                 cols[c] = y.astype(np.float32, copy=False)
         else:
-            # average the device's samples in [t - 1/(2 rate), t + 1/(2 rate))
+            # average the device's samples in [t - 1/(2 rate), t + 1/(2 rate)] (centred)
             lo = np.clip(np.ceil((tt - 0.5 / rate - t0) * r - 1e-6).astype(np.int64), 0, m)
-            hi = np.clip(np.ceil((tt + 0.5 / rate - t0) * r - 1e-6).astype(np.int64), 0, m)
+            hi = np.clip(np.floor((tt + 0.5 / rate - t0) * r + 1e-6).astype(np.int64) + 1, 0, m)
             cnt = hi - lo
             for k, c in enumerate(f.columns):
                 bad = np.isnan(x[k])
