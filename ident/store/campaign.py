@@ -37,12 +37,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..description import Mill
-from ..errors import IdentError, MillFileError, StoreError
+from ..errors import IdentError, MillFileError, ModelArtifactError, StoreError
 from ..io.millfile import load_mill
 from .discover import RecordingSource, discover
 from .outcome import RecordingOutcome
-from .process import (ProcessFn, Settings, describe_error, library_versions, process_recording,
-                      settings_hash)
+from .process import (ProcessFn, Settings, available_stages, describe_error, library_versions,
+                      process_recording, settings_hash)
 from .store import RecordingKey, Store, open_store
 
 __all__ = ["run_campaign", "CampaignSummary", "CampaignError", "default_workers"]
@@ -317,12 +317,16 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
     mill, mill_text = _mill_and_text(mill)
     sources = discover(directory)
     root = Path(directory).resolve()
-    model_hash = {}
+    extra: dict[str, Any] = {}
+    if process is process_recording:
+        extra["stages"] = list(available_stages())
     if settings.model:
         from .discover import content_hash
 
-        model_hash = {"model_sha256": content_hash((Path(settings.model),))}
-    shash = settings_hash(settings, mill, extra=model_hash)
+        if not Path(settings.model).is_file():
+            raise ModelArtifactError(f"wear classifier not found: {settings.model}")
+        extra["model_sha256"] = content_hash((Path(settings.model),))
+    shash = settings_hash(settings, mill, extra=extra)
     st = open_store(store)
     try:
         st.register_mill(mill, mill_text)

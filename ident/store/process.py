@@ -27,7 +27,8 @@ from ..description import Mill
 from ..errors import DataQualityWarning, IdentError
 from .outcome import RecordingOutcome, jsonable
 
-__all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn"]
+__all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn",
+           "available_stages"]
 
 #: The signature of a per-recording processing function (the campaign's unit of work).
 ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
@@ -90,6 +91,30 @@ def library_versions() -> dict[str, str]:
         except _md.PackageNotFoundError:
             pass
     return out
+
+
+#: Stages that need a package of their own, and the names it must export.
+_OPTIONAL_STAGES = {"fit": ("ident.fit", ("fit_gaps", "windows_from_recording")),
+                    "diagnose": ("ident.diagnose", ("diagnose",))}
+
+
+def available_stages() -> tuple[str, ...]:
+    """The optional stages (``fit``, ``diagnose``) this installation provides.
+
+    They are part of the idempotency key (see :func:`ident.store.run_campaign`): a
+    recording stored before a stage was available is processed again once it is.
+    """
+    import importlib
+
+    out = []
+    for stage, (module, names) in _OPTIONAL_STAGES.items():
+        try:
+            mod = importlib.import_module(module)
+        except ImportError:
+            continue
+        if all(hasattr(mod, n) for n in names):
+            out.append(stage)
+    return tuple(out)
 
 
 class _Failed(Exception):
@@ -170,14 +195,22 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
         parts["segments"] = tuple(jsonable(s.to_dict()) for s in segs)
         if not segs:
             raise _Failed("segment", IdentError(
-                f"{path.name}: no load-step transients found; nothing to fit"))
+                f"{path}: no load-step transients found; nothing to fit"))
 
         from .taf import measured_taf
 
         parts["taf"] = tuple(stage("taf", lambda: measured_taf(
             rec, mill, parts["segments"], window_s=settings.taf_window_s)))
 
-        if settings.fit:
+        stages = available_stages()
+        for name, wanted in (("fit", settings.fit), ("diagnose", settings.diagnose)):
+            if wanted and name not in stages:
+                quality.append({"stage": name, "kind": "stage_unavailable",
+                                "message": f"the {name} stage is not installed in this ident; "
+                                           f"skipped", "channel": None, "t_start": None,
+                                "t_end": None, "fatal": False})
+
+        if settings.fit and "fit" in stages:
             from ..fit import fit_gaps, windows_from_recording
 
             use = segs if settings.max_transients is None else segs[:settings.max_transients]
@@ -192,7 +225,7 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                     per.append(dict(d, transient_idx=i))
                 parts["transient_fits"] = tuple(per)
 
-        if settings.diagnose:
+        if settings.diagnose and "diagnose" in stages:
             from ..diagnose import diagnose
 
             kw_d = {} if settings.model is None else {"model": settings.model}
@@ -201,9 +234,6 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
     except _Failed as f:
         status, failed_stage = "failed", f.stage
         error, kind = describe_error(f.stage, f.exc), type(f.exc).__name__
-    except ImportError as exc:  # a stage that is not installed
-        status, failed_stage = "failed", "setup"
-        error, kind = describe_error("setup", exc), type(exc).__name__
     return RecordingOutcome(
         status=status, error=error, error_kind=kind, stage=failed_stage,
         quality=tuple(jsonable(q) for q in quality), versions=library_versions(),

@@ -21,8 +21,16 @@ from ..io.recording import Recording
 __all__ = ["measured_taf"]
 
 
+def _smooth(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving mean over ``n`` samples (NaN-free input)."""
+    if n <= 1 or x.size < n:
+        return x
+    k = np.ones(n) / n
+    return np.convolve(x, k, mode="same")
+
+
 def measured_taf(rec: Recording, mill: Mill, segments: Sequence[Mapping[str, Any]], *,
-                 window_s: float = 1.0) -> list[dict[str, Any]]:
+                 window_s: float = 1.0, smooth_s: float = 0.002) -> list[dict[str, Any]]:
     """TAF per bite transient and torque channel.
 
     Parameters
@@ -35,6 +43,10 @@ def measured_taf(rec: Recording, mill: Mill, segments: Sequence[Mapping[str, Any
         cli.md ``segment`` entries (``kind``, ``t_start``, ``t_step``, ``t_end``), s.
     window_s : float
         Length after the bite's ``t_step`` searched for the peak, s.
+    smooth_s : float
+        Moving mean applied before taking the peak, s: sensor noise would bias the
+        peak up by about two of its standard deviations; 2 ms keeps the seed's
+        highest natural frequency (81 Hz) within 3 % of its amplitude.
 
     Returns
     -------
@@ -74,7 +86,9 @@ def measured_taf(rec: Recording, mill: Mill, segments: Sequence[Mapping[str, Any
                 continue
             static = float(np.median(x[late])) / ratio
             sgn = 1.0 if static >= 0 else -1.0
-            peak = sgn * float(np.max(sgn * x[win])) / ratio
+            dt_s = float(np.median(np.diff(t[:64]))) if t.size > 1 else 1.0
+            xw = _smooth(x[win], int(round(smooth_s / dt_s)) if dt_s > 0 else 1)
+            peak = sgn * float(np.max(sgn * xw)) / ratio
             taf = peak / static if static != 0 else math.nan
             rows.append({"transient_idx": i, "element": ch.element, "channel": ch.name,
                          "static_torque": static, "peak_torque": peak, "taf": taf})
