@@ -185,8 +185,15 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
 
         rec = stage("read", lambda: read_recording(path, mill))
         quality[:0] = [dict(q.to_dict(), stage="read") for q in rec.issues]
+        t0_ns = int(rec.t0_ns)
+        if t0_ns == 0:  # e.g. a CSV with times in seconds from its start
+            t0_ns = path.stat().st_mtime_ns
+            quality.append({"stage": "read", "kind": "no_absolute_time",
+                            "message": "the recording holds no absolute time; its start is "
+                                       "taken from the file's modification time",
+                            "channel": None, "t_start": None, "t_end": None, "fatal": False})
         parts["recording"] = {"recording_id": rec.metadata.get("recording_id"),
-                              "metadata": dict(rec.metadata), "t0_ns": int(rec.t0_ns),
+                              "metadata": dict(rec.metadata), "t0_ns": t0_ns,
                               "duration_s": float(rec.duration)}
 
         from ..segment import segment_transients

@@ -114,7 +114,7 @@ def make_sample_campaign(folder: str | Path, mill: Mill, *, n_recordings: int = 
         ext = ".csv" if csv_every and i % csv_every == csv_every - 1 else ".mcap"
         path = folder / f"day{int(day):02d}" / f"{mill.name}_{i:03d}{ext}"
         path.parent.mkdir(parents=True, exist_ok=True)
-        kw: dict[str, Any] = {}
+        kw: dict[str, Any] = {"time_format": "iso"}
         if ext == ".mcap":
             kw = {"metadata": {"mill": mill.name, "stand": mill.name, "campaign": "sample",
                                "recording_id": path.stem}}
