@@ -203,7 +203,7 @@ class _Dask:
             raise CampaignError("--scheduler needs dask.distributed: pip install "
                                 "'dask[distributed]'") from None
         try:
-            self.client = Client(address, timeout="15s", set_as_default=False)
+            self.client = Client(address, set_as_default=False)
         except (OSError, TimeoutError, ValueError) as exc:
             raise CampaignError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
         self.process = process
@@ -217,7 +217,8 @@ class _Dask:
     def wait(self, futs) -> set:
         from distributed import wait
 
-        done, _ = wait(list(futs), return_when="FIRST_COMPLETED")
+        with self.client.as_current():
+            done, _ = wait(list(futs), return_when="FIRST_COMPLETED")
         return set(done)
 
     def restart(self) -> None:  # pragma: no cover - the scheduler recovers by itself
