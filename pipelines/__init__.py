@@ -1,0 +1,1 @@
+"""Scheduled and demonstration jobs built on ident's public API (see README.md here)."""
