@@ -363,7 +363,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                               n_found=len(sources), n_skipped=n_skipped)
         counts = {"done": 0, "failed": 0}
         failed_now: list[tuple[str, str]] = []
-        from tqdm.auto import tqdm
+        from tqdm import tqdm
 
         bar = tqdm(total=len(todo), unit="rec", desc=f"campaign {mill.name}", file=sys.stderr,
                    disable=not progress, dynamic_ncols=True, smoothing=0.1)
