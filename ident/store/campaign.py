@@ -42,7 +42,7 @@ from ..io.millfile import load_mill
 from .discover import RecordingSource, discover
 from .outcome import RecordingOutcome
 from .process import (ProcessFn, Settings, available_stages, describe_error, library_versions,
-                      process_recording, settings_hash)
+                      model_path, process_recording, settings_hash)
 from .store import RecordingKey, Store, open_store
 
 __all__ = ["run_campaign", "CampaignSummary", "CampaignError", "default_workers"]
@@ -321,12 +321,13 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
     extra: dict[str, Any] = {}
     if process is process_recording:
         extra["stages"] = list(available_stages())
-    if settings.model:
+    if settings.model and not Path(settings.model).is_file():
+        raise ModelArtifactError(f"wear model not found: {settings.model}")
+    model_file = model_path(mill, settings) if settings.diagnose else None
+    if model_file is not None:
         from .discover import content_hash
 
-        if not Path(settings.model).is_file():
-            raise ModelArtifactError(f"wear classifier not found: {settings.model}")
-        extra["model_sha256"] = content_hash((Path(settings.model),))
+        extra["model_sha256"] = content_hash((model_file,))
     shash = settings_hash(settings, mill, extra=extra)
     st = open_store(store)
     try:

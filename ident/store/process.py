@@ -28,7 +28,7 @@ from ..errors import DataQualityWarning, IdentError
 from .outcome import RecordingOutcome, jsonable
 
 __all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn",
-           "available_stages"]
+           "available_stages", "model_path"]
 
 #: The signature of a per-recording processing function (the campaign's unit of work).
 ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
@@ -55,7 +55,9 @@ class Settings:
     diagnose : bool
         Run the wear diagnosis.
     model : str or None
-        Trained classifier for the diagnosis; None = the cached model of the mill.
+        Trained wear model for the diagnosis; None = the mill's cached model
+        (``ident.diagnose.model_cache_path``); without one the diagnosis is skipped
+        with a ``no_model`` finding.
     taf_window_s : float
         Window after each bite searched for the peak torque, s.
     """
@@ -95,7 +97,10 @@ def library_versions() -> dict[str, str]:
 
 #: Stages that need a package of their own, and the names it must export.
 _OPTIONAL_STAGES = {"fit": ("ident.fit", ("fit_gaps", "windows_from_recording")),
-                    "diagnose": ("ident.diagnose", ("diagnose",))}
+                    "diagnose": ("ident.diagnose", ("diagnose_features", "load_model",
+                                                    "model_cache_path")),
+                    "features": ("ident.features", ("transient_features",
+                                                    "recording_features", "feature_summary"))}
 
 
 def available_stages() -> tuple[str, ...]:
@@ -114,7 +119,44 @@ def available_stages() -> tuple[str, ...]:
             continue
         if all(hasattr(mod, n) for n in names):
             out.append(stage)
+    if "features" in out:  # the diagnosis needs both
+        out.remove("features")
+    elif "diagnose" in out:
+        out.remove("diagnose")
     return tuple(out)
+
+
+def model_path(mill: Mill, settings: Settings) -> Path | None:
+    """The wear model a campaign diagnoses with: ``settings.model`` or the mill's cached one."""
+    if settings.model:
+        return Path(settings.model)
+    if "diagnose" not in available_stages():
+        return None
+    from ..diagnose import model_cache_path
+
+    p = Path(model_cache_path(mill))
+    return p if p.is_file() else None
+
+
+def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> dict[str, Any]:
+    """cli.md ``diagnose`` JSON of one recording (features -> trained model)."""
+    from ..diagnose import diagnose_features, load_model
+    from ..features import feature_summary, recording_features, transient_features
+
+    model = load_model(model_file, mill)
+    tf = transient_features(rec, mill, [s.t_step for s in segs], options=model.options)
+    if len(tf.table) == 0:
+        raise IdentError("the load steps found are too close together or too close to the "
+                         "recording's ends to analyse")
+    diag = diagnose_features(model, recording_features(tf), explain=False)
+
+    def block(d: Any, size_key: str) -> dict[str, Any]:
+        return {"state": d.state, "probability": d.probability, size_key: d.size,
+                f"{size_key}_ci95": list(d.interval), "uncertain": d.uncertain}
+
+    return {"elements": {k: block(v, "gap") for k, v in diag.elements.items()},
+            "bearings": {k: block(v, "clearance") for k, v in diag.bearings.items()},
+            "features": feature_summary(tf), "warnings": list(diag.warnings)}
 
 
 class _Failed(Exception):
@@ -216,6 +258,13 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                                 "message": f"the {name} stage is not installed in this ident; "
                                            f"skipped", "channel": None, "t_start": None,
                                 "t_end": None, "fatal": False})
+        model_file = model_path(mill, settings) if settings.diagnose else None
+        if settings.diagnose and "diagnose" in stages and model_file is None:
+            quality.append({"stage": "diagnose", "kind": "no_model",
+                            "message": f"no trained wear model for mill '{mill.name}': run "
+                                       f"'ident train' (or 'ident diagnose' once) and rerun; "
+                                       f"diagnosis skipped", "channel": None,
+                            "t_start": None, "t_end": None, "fatal": False})
 
         if settings.fit and "fit" in stages:
             from ..fit import fit_gaps, windows_from_recording
@@ -232,12 +281,9 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                     per.append(dict(d, transient_idx=i))
                 parts["transient_fits"] = tuple(per)
 
-        if settings.diagnose and "diagnose" in stages:
-            from ..diagnose import diagnose
-
-            kw_d = {} if settings.model is None else {"model": settings.model}
-            parts["diagnosis"] = jsonable(stage("diagnose", lambda: _as_dict(
-                diagnose(rec, mill, **kw_d))))
+        if settings.diagnose and "diagnose" in stages and model_file is not None:
+            parts["diagnosis"] = jsonable(stage("diagnose", lambda: _diagnose(
+                rec, mill, segs, model_file)))
     except _Failed as f:
         status, failed_stage = "failed", f.stage
         error, kind = describe_error(f.stage, f.exc), type(f.exc).__name__
@@ -247,9 +293,3 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
         started_at=started, elapsed_s=time.perf_counter() - t_start,
         worker=f"{socket.gethostname()}:{os.getpid()}", **parts)
 
-
-def _as_dict(result: Any) -> dict[str, Any]:
-    """A stage result as its cli.md dict (``to_dict()`` or already a mapping)."""
-    if isinstance(result, Mapping):
-        return dict(result)
-    return result.to_dict()
