@@ -44,6 +44,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--workers", type=int, help="local worker processes (default all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address instead of local workers")
     p.add_argument("--lock", help="lock file (default: REPORT.lock)")
+    p.add_argument("--min-age-s", type=float, default=120.0,
+                   help="leave files younger than this for the next run (still being copied "
+                        "in); default 120 s")
     p.add_argument("--progress", action="store_true", help="progress bar (off for cron)")
     return p.parse_args(argv)
 
@@ -61,7 +64,8 @@ def run(argv: list[str] | None = None) -> int:
             _log(f"another run holds {lock_path}; nothing to do")
             return 0
         quiet = [] if args.progress else ["--quiet"]
-        opts = (["--workers", str(args.workers)] if args.workers is not None else []) + \
+        opts = ["--min-age-s", str(args.min_age_s)] + \
+            (["--workers", str(args.workers)] if args.workers is not None else []) + \
             (["--scheduler", args.scheduler] if args.scheduler else [])
         _log(f"campaign {args.incoming} -> {args.store}")
         code = ident_main(["campaign", args.incoming, "--mill", args.mill, "--store",

@@ -190,3 +190,30 @@ def test_summary_json(campaign, mill, tmp_path):
     d = json.loads(json.dumps(s.to_dict()))
     assert d["found"] == 7 and d["failed"] == 1 and d["failed_recordings"][0]["file"] == \
         "broken0.mcap"
+
+
+def test_unreadable_and_young_files(tmp_path, mill, monkeypatch):
+    import os
+    import time
+
+    import ident.store.discovery as D
+
+    folder = tmp_path / "c"
+    make_double_campaign(folder, n=2, bad=0)
+    write_double_recording(folder / "locked.mcap", day=3)
+    real = D.content_hash
+
+    def no_access(paths):
+        if paths[0].name == "locked.mcap":
+            raise PermissionError(13, "Permission denied", str(paths[0]))
+        return real(paths)
+
+    monkeypatch.setattr(D, "content_hash", no_access)
+    found = {s.file_name: s for s in discover(folder)}
+    assert found["locked.mcap"].content_sha256.startswith("unreadable-")
+    assert len(found["locked.mcap"].content_sha256) == 63
+    old = time.time() - 3600
+    for p in folder.glob("rec*.mcap"):
+        os.utime(p, (old, old))
+    young = {s.file_name for s in discover(folder, min_age_s=600)}
+    assert young == {"rec000.mcap", "rec001.mcap"}

@@ -44,7 +44,8 @@ def test_daily_is_incremental_and_locked(tmp_path, mill, mill_path, capsys):
     store = f"sqlite:///{tmp_path}/results.db"
     report = tmp_path / "www" / "report.html"
     args = ["--incoming", str(incoming), "--mill", str(mill_path), "--store", store,
-            "--report", str(report), "--archive", str(tmp_path / "archive"), "--workers", "0"]
+            "--report", str(report), "--archive", str(tmp_path / "archive"), "--workers", "0",
+            "--min-age-s", "0"]
     assert daily.run(args) == 3  # the malformed file is stored as failed and reported
     assert report.exists() and len(list((tmp_path / "archive").glob("report-*.html"))) == 1
     # the next day: one new recording, only it is processed

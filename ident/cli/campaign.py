@@ -47,6 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="process again the recordings stored as failed")
     p.add_argument("--memory-limit-mb", type=int, metavar="MB",
                    help="address-space limit per local worker process")
+    p.add_argument("--min-age-s", type=float, default=0.0, metavar="S",
+                   help="leave out files modified less than S seconds ago (still arriving)")
     p.add_argument("--out", metavar="FILE", help="write the JSON summary here instead of stdout")
     p.add_argument("--quiet", action="store_true", help="no progress output on stderr")
 
@@ -59,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     summary = run_campaign(args.dir, mill, args.store, workers=args.workers,
                            scheduler=args.scheduler, settings=settings,
                            progress=not args.quiet, retry_failed=args.retry_failed,
-                           memory_limit_mb=args.memory_limit_mb)
+                           memory_limit_mb=args.memory_limit_mb, min_age_s=args.min_age_s)
     write_json(summary.to_dict(), args.out)
     if not args.quiet:
         print(f"ident campaign: {summary.n_found} recordings: {summary.n_done} stored, "

@@ -17,7 +17,7 @@ SQLite is the embedded default (``sqlite:///results.db``), PostgreSQL by URL
 """
 
 from .campaign import CampaignError, CampaignSummary, default_workers, run_campaign
-from .discover import RecordingSource, discover
+from .discovery import RecordingSource, discover
 from .load import RESULT_TABLES, load_results
 from .outcome import RecordingOutcome
 from .process import (Settings, available_stages, library_versions, process_recording,

@@ -1,6 +1,6 @@
 """Run a campaign: every recording under a folder, processed in parallel, into a store.
 
-:func:`run_campaign` finds the recordings (:mod:`ident.store.discover`), skips
+:func:`run_campaign` finds the recordings (:mod:`ident.store.discovery`), skips
 those already stored with the same content and settings, sends the rest to worker
 processes (a local process pool on all cores, or a Dask cluster), and writes each
 outcome as it arrives, one transaction per recording, from this process only.
@@ -39,7 +39,7 @@ from typing import Any, Callable
 from ..description import Mill
 from ..errors import IdentError, MillFileError, ModelArtifactError, StoreError
 from ..io.millfile import load_mill
-from .discover import RecordingSource, discover
+from .discovery import RecordingSource, discover
 from .outcome import RecordingOutcome
 from .process import (ProcessFn, Settings, available_stages, describe_error, library_versions,
                       model_path, process_recording, settings_hash)
@@ -268,6 +268,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                  settings: Settings = Settings(), progress: bool = True,
                  retry_failed: bool = False, process: ProcessFn = process_recording,
                  tasks_per_worker: int = 25, memory_limit_mb: int | None = None,
+                 min_age_s: float = 0.0,
                  on_stored: Callable[[str, RecordingOutcome], None] | None = None,
                  ) -> CampaignSummary:
     """Process every recording under ``directory`` into the results store ``store``.
@@ -300,6 +301,8 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
     memory_limit_mb : int, optional
         Address-space limit of each local worker process, MiB; a recording that
         needs more fails with ``MemoryError``.
+    min_age_s : float
+        Leave out recordings modified less than this many seconds ago (still arriving).
     on_stored : callable, optional
         Called as ``on_stored(file_name, outcome)`` after each commit.
 
@@ -316,7 +319,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
     """
     t_begin = time.perf_counter()
     mill, mill_text = _mill_and_text(mill)
-    sources = discover(directory)
+    sources = discover(directory, min_age_s=min_age_s)
     root = Path(directory).resolve()
     extra: dict[str, Any] = {}
     if process is process_recording:
@@ -325,7 +328,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         raise ModelArtifactError(f"wear model not found: {settings.model}")
     model_file = model_path(mill, settings) if settings.diagnose else None
     if model_file is not None:
-        from .discover import content_hash
+        from .discovery import content_hash
 
         extra["model_sha256"] = content_hash((model_file,))
     shash = settings_hash(settings, mill, extra=extra)

@@ -159,6 +159,12 @@ def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> dict[str, 
             "features": feature_summary(tf), "warnings": list(diag.warnings)}
 
 
+def _finding(stage: str, kind: str, message: str) -> dict[str, Any]:
+    """A data-quality finding of a stage (the ``quality`` entries of an outcome)."""
+    return {"stage": stage, "kind": kind, "message": message, "channel": None,
+            "t_start": None, "t_end": None, "fatal": False}
+
+
 class _Failed(Exception):
     """Internal: a stage failed; carries the outcome fields."""
 
@@ -216,9 +222,8 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                 for w in caught:
                     if name == "read" and issubclass(w.category, DataQualityWarning):
                         continue  # the reader lists every finding in Recording.issues too
-                    quality.append({"stage": name, "kind": f"warning:{w.category.__name__}",
-                                    "message": str(w.message), "channel": None,
-                                    "t_start": None, "t_end": None, "fatal": False})
+                    quality.append(_finding(name, f"warning:{w.category.__name__}",
+                                            str(w.message)))
         return value
 
     status, error, kind, failed_stage = "done", None, None, None
@@ -230,10 +235,9 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
         t0_ns = int(rec.t0_ns)
         if t0_ns == 0:  # e.g. a CSV with times in seconds from its start
             t0_ns = path.stat().st_mtime_ns
-            quality.append({"stage": "read", "kind": "no_absolute_time",
-                            "message": "the recording holds no absolute time; its start is "
-                                       "taken from the file's modification time",
-                            "channel": None, "t_start": None, "t_end": None, "fatal": False})
+            quality.append(_finding("read", "no_absolute_time",
+                                    "the recording holds no absolute time; its start is "
+                                    "taken from the file's modification time"))
         parts["recording"] = {"recording_id": rec.metadata.get("recording_id"),
                               "metadata": dict(rec.metadata), "t0_ns": t0_ns,
                               "duration_s": float(rec.duration)}
@@ -254,17 +258,15 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
         stages = available_stages()
         for name, wanted in (("fit", settings.fit), ("diagnose", settings.diagnose)):
             if wanted and name not in stages:
-                quality.append({"stage": name, "kind": "stage_unavailable",
-                                "message": f"the {name} stage is not installed in this ident; "
-                                           f"skipped", "channel": None, "t_start": None,
-                                "t_end": None, "fatal": False})
+                quality.append(_finding(name, "stage_unavailable",
+                                        f"the {name} stage is not installed in this ident; "
+                                        f"skipped"))
         model_file = model_path(mill, settings) if settings.diagnose else None
         if settings.diagnose and "diagnose" in stages and model_file is None:
-            quality.append({"stage": "diagnose", "kind": "no_model",
-                            "message": f"no trained wear model for mill '{mill.name}': run "
-                                       f"'ident train' (or 'ident diagnose' once) and rerun; "
-                                       f"diagnosis skipped", "channel": None,
-                            "t_start": None, "t_end": None, "fatal": False})
+            quality.append(_finding("diagnose", "no_model",
+                                    f"no trained wear model for mill '{mill.name}': run "
+                                    f"'ident train' (or 'ident diagnose' once) and rerun; "
+                                    f"diagnosis skipped"))
 
         if settings.fit and "fit" in stages:
             from ..fit import fit_gaps, windows_from_recording

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,7 +98,20 @@ def _group_csv(files: list[Path]) -> list[tuple[Path, ...]]:
     return [tuple([k] + sorted(v for v in vs if v != k)) for k, vs in groups.items()]
 
 
-def discover(directory: str | os.PathLike, *, hash_content: bool = True) -> list[RecordingSource]:
+def _unreadable_hash(paths: tuple[Path, ...], exc: OSError) -> str:
+    """A key for files that cannot be read now (it changes when they change)."""
+    h = hashlib.sha256(b"unreadable")
+    for p in paths:
+        try:
+            st = p.stat()
+            h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+        except OSError:
+            h.update(p.name.encode())
+    return "unreadable-" + h.hexdigest()[:52]
+
+
+def discover(directory: str | os.PathLike, *, hash_content: bool = True,
+             min_age_s: float = 0.0) -> list[RecordingSource]:
     """The recordings under ``directory``, sorted by file name.
 
     Parameters
@@ -105,7 +119,12 @@ def discover(directory: str | os.PathLike, *, hash_content: bool = True) -> list
     directory : path
         The campaign folder, searched recursively.
     hash_content : bool
-        Compute ``content_sha256`` (reads every byte); with False it is empty.
+        Compute ``content_sha256`` (reads every byte); with False it is empty.  A file
+        that cannot be read gets a key starting ``unreadable-`` (its processing then
+        fails with the reader's reason).
+    min_age_s : float
+        Leave out recordings modified less than this many seconds ago (files still
+        being copied in).
 
     Raises
     ------
@@ -133,9 +152,21 @@ def discover(directory: str | os.PathLike, *, hash_content: bool = True) -> list
                 csv.append(root / rel)
     groups = [(p,) for p in mcap] + _group_csv(csv)
     out = []
+    now = time.time()
     for paths in groups:
-        size = sum(p.stat().st_size for p in paths)
+        try:
+            stats = [p.stat() for p in paths]
+        except OSError:  # vanished since the walk
+            continue
+        if min_age_s > 0 and now - max(st.st_mtime for st in stats) < min_age_s:
+            continue
+        digest = ""
+        if hash_content:
+            try:
+                digest = content_hash(paths)
+            except OSError as exc:
+                digest = _unreadable_hash(paths, exc)
         out.append(RecordingSource(file_name=paths[0].relative_to(root).as_posix(), paths=paths,
-                                   size_bytes=size,
-                                   content_sha256=content_hash(paths) if hash_content else ""))
+                                   size_bytes=sum(st.st_size for st in stats),
+                                   content_sha256=digest))
     return sorted(out, key=lambda s: s.file_name)
