@@ -346,3 +346,74 @@ def test_raw_full_scale_and_flat_channel(tmp_path, mill):
     assert any(i.t_start == pytest.approx(0.5) and "16-bit full scale" in i.message
                for i in clipped)
     assert only(rec, "flat")[0].channel == "T_C34"
+
+
+def test_corrupt_message_is_skipped(tmp_path, mill, torque):
+    from mcap.writer import CompressionType, Writer
+
+    from ident.io.sampleblock import encode_json, json_schema
+
+    p = tmp_path / "badmsg.mcap"
+    with open(p, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.NONE)
+        w.start()
+        sid = w.register_schema("ident.SampleBlock", "jsonschema", json_schema())
+        cid = w.register_channel("/t", "json", sid)
+        for k, (t0, d) in enumerate(blocks_of(torque)[:10]):
+            msg = b'{"t0_ns": oops' if k == 4 else encode_json(t0, torque.rate_hz,
+                                                                torque.channels, torque.units, d)
+            w.add_message(cid, t0, msg, t0)
+        w.finish()
+    rec = read_recording(p, mill, warn=False)
+    bad = only(rec, "corrupt")[0]
+    assert "is not a sample block" in bad.message and bad.t_start == pytest.approx(0.4)
+    drop = only(rec, "dropout")[0]
+    assert (drop.t_start, drop.t_end) == (pytest.approx(0.4), pytest.approx(0.5))
+
+
+def test_device_changing_its_channels_is_fatal(tmp_path, mill, torque):
+    from mcap.writer import Writer
+
+    from ident.io.sampleblock import encode_protobuf, protobuf_schema
+
+    p = tmp_path / "change.mcap"
+    with open(p, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("ident.SampleBlock", "protobuf", protobuf_schema())
+        cid = w.register_channel("/t", "protobuf", sid)
+        w.add_message(cid, T0_NS, encode_protobuf(T0_NS, 2000.0, torque.channels, torque.units,
+                                                  torque.data[:, :200]), T0_NS)
+        t1 = T0_NS + 100_000_000
+        w.add_message(cid, t1, encode_protobuf(t1, 2000.0, torque.channels[:2],
+                                               torque.units[:2], torque.data[:2, 200:400]), t1)
+        w.finish()
+    with pytest.raises(RecordingError, match=r"device '/t' changes within the recording: a "
+                       r"block at t0_ns=\d+ has channels \['T_C12', 'T_C34'\]"):
+        read_recording(p, mill)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("", r"the CSV file has no header line"),
+    ("time T_C12\n0 1\n", r"has no ',', ';' or tab separator"),
+    ("time,T_C12\n", r"the CSV file has a header but no data rows"),
+    ("time,T_C12\n0.0,1.0\n", r"a single row; cannot tell the sample rate"),
+    ("time,T_C12\n0.0,1.0\n0.001,abc\n", r"cannot parse the CSV file after row 1"),
+    ("time,T_C12,T_C12\n0.0,1,1\n0.001,2,2\n", r"channel\(s\) \['T_C12'\] appear in more than "
+                                                r"one column"),
+    ("time,T_C12\nyesterday,1\ntoday,2\n", r"neither float seconds nor an ISO-8601 timestamp"),
+])
+def test_malformed_csv(tmp_path, mill, text, match):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(RecordingError, match=match):
+        read_recording(p, mill, warn=False)
+
+
+def test_requested_unmapped_channel(tmp_path, mill, torque):
+    dev = dataclasses.replace(torque, channels=torque.channels[:3] + ("T_X",))
+    p = tmp_path / "x.mcap"
+    write_recording(p, [dev])
+    with pytest.raises(RecordingError, match=r"channel 'T_X': unknown channel: requested "
+                       r"channel\(s\) \['T_X'\] are not in the mill file's sensor map"):
+        read_recording(p, mill, channels=["T_X"])

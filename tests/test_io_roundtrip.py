@@ -285,3 +285,43 @@ def test_writer_refuses_bad_input(tmp_path, synth):
     with pytest.raises(RecordingError, match=r"encoding must be 'protobuf' or 'json'; got 'xml'"):
         write_recording(tmp_path / "r.mcap", synth.devices, encoding="xml")
     assert not list(tmp_path.iterdir())  # nothing half-written stays behind
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(rate_hz=0.0), r"device '/telemetry/torque': rate_hz must be positive; got 0\.0"),
+    (dict(channels=("T_C12", "T,C34", "T_C46", "T_C57")),
+     r"channel name 'T,C34' is empty or holds one of"),
+    (dict(data=np.zeros((3, 10), np.float32)),
+     r"data must have shape \(n_channels=4, n_samples\); got \(3, 10\)"),
+])
+def test_writer_refuses_inconsistent_devices(tmp_path, synth, change, match):
+    from ident.errors import RecordingError
+
+    with pytest.raises(RecordingError, match=match):
+        write_recording(tmp_path / "r.mcap", [dataclasses.replace(synth.devices[0], **change)])
+
+
+def test_writer_refuses_clashes(tmp_path, synth):
+    from ident.errors import RecordingError
+
+    a, b = synth.devices
+    with pytest.raises(RecordingError, match=r"device names must be unique; got \['/telemetry/"
+                       r"torque', '/telemetry/torque'\]"):
+        write_recording(tmp_path / "r.mcap", [a, dataclasses.replace(b, name=a.name)])
+    with pytest.raises(RecordingError, match=r"channel names must be unique over all devices; "
+                       r"\['T_C12'\] repeat"):
+        write_recording(tmp_path / "r.mcap",
+                        [a, dataclasses.replace(b, channels=("T_C12",) + b.channels[1:])])
+    with pytest.raises(RecordingError, match=r"give clashing CSV file names"):
+        write_recording(tmp_path / "r.csv", [a, dataclasses.replace(b, name="x/torque"),
+                                             dataclasses.replace(b, name="y/torque",
+                                                                 channels=("Z1", "Z2", "Z3",
+                                                                           "Z4"))])
+    with pytest.raises(RecordingError, match=r"metadata keys and values must be strings; "
+                       r"\['n'\] are not"):
+        write_recording(tmp_path / "r.mcap", [a], metadata={"n": 1})
+    with pytest.raises(RecordingError, match=r"block_samples must be >= 1; got 0"):
+        write_recording(tmp_path / "r.mcap", [a], block_samples=0)
+    with pytest.raises(RecordingError, match=r"time_format must be 'seconds' or 'iso'; got 'ms'"):
+        write_recording(tmp_path / "r.csv", [a], time_format="ms")
+    assert not [p for p in tmp_path.iterdir() if p.suffix != ".csv" or p.stat().st_size]

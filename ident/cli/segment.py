@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 
-from ..errors import DataQualityWarning
 from ..io.readers import read_recording
 from ..segment import segment_transients
 from .common import add_common, load_mill_arg, write_json
@@ -28,9 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     mill = load_mill_arg(args)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DataQualityWarning)  # listed in the JSON instead
-        rec = read_recording(args.recording, mill, warn=False)
+    rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
     segments = segment_transients(rec, mill)
     if not args.quiet:
         print(f"ident segment: {len(segments)} transients, {len(rec.issues)} quality findings",

@@ -202,7 +202,8 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     if n == 0:
         raise log.fatal("unreadable", f"{path.name}: the CSV file has no data rows")
     t_buf = t_buf[:n]
-    d_buf = d_buf[:, :n] if d_buf.shape[1] == n else np.ascontiguousarray(d_buf[:, :n])
+    # a view keeps the spare capacity alive; copy only when that is more than 10 %
+    d_buf = d_buf[:, :n] if d_buf.shape[1] <= 1.1 * n else np.ascontiguousarray(d_buf[:, :n])
     if iso:
         start_ns = int(t_buf.min())
         t_rel = (t_buf - start_ns).astype(np.float64) / 1e9

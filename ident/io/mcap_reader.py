@@ -160,6 +160,7 @@ class _Assembler:
         self.skip_topics: set[str] = set()
         self.last_good_ns: int | None = None
         self.corrupt_ns: list[tuple[int, int]] = []
+        self.bad_messages: list[tuple[str, int, BlockDecodeError]] = []
         self.n_blocks = 0
 
     def channel(self, channel, schema) -> None:
@@ -190,9 +191,7 @@ class _Assembler:
         try:
             block = decode(msg.data)
         except BlockDecodeError as exc:
-            self.log.add("corrupt", f"topic {topic!r}: message logged at {msg.log_time} ns is "
-                         f"not a sample block ({exc}); skipped", device=topic)
-            self.corrupt_ns.append((msg.log_time, msg.log_time))
+            self.bad_messages.append((topic, msg.log_time, exc))  # reported with times later
             return
         placer = self.placers.get(topic)
         if placer is None:
@@ -330,6 +329,11 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
                     f"({_why(exc)}); its samples from t={(a - origin) / 1e9:.4f} s "
                     f"to t={(b - origin) / 1e9:.4f} s are missing (NaN); the rest is read",
                     t_start=(a - origin) / 1e9, t_end=(b - origin) / 1e9)
+        for topic, log_time, exc in asm.bad_messages:
+            t = (log_time - origin) / 1e9
+            log.add("corrupt", f"topic {topic!r}: the message logged at t={t:.4f} s is not a "
+                    f"sample block ({exc}); skipped, its samples are a dropout", t_start=t,
+                    device=topic)
         if broke is not None:
             t_last = (asm.last_good_ns - origin) / 1e9
             log.add("truncated", f"the file breaks off at byte {broke[0]} of {broke[1]} "

@@ -183,39 +183,49 @@ def scan_channel(log: IssueLog, device: str, channel: str, x: np.ndarray, *, rat
     n = x.size
     if n == 0:
         return
-    nan = np.isnan(x)
-    n_nan = int(nan.sum())
 
     def t(i: int) -> float:
         return offset_s + i / rate_hz
 
-    if n_nan:
+    hi = float(np.max(x))  # NaN if any sample is NaN: one pass tells both
+    lo = float(np.min(x))
+    if np.isnan(hi) or np.isnan(lo):
+        nan = np.isnan(x)
         own = nan & ~gap_mask if gap_mask is not None else nan
         starts, ends = find_runs(own)
         for s, e in zip(starts.tolist(), ends.tolist()):
             log.add("nan_run", f"{e - s} NaN samples ({(e - s) / rate_hz:.4f} s) from "
                     f"t={t(s):.4f} s to t={t(e):.4f} s; kept as NaN, not interpolated",
                     channel=channel, t_start=t(s), t_end=t(e), device=device)
-        if n_nan == n:
+        if nan.all():
             return
-    hi = float(np.nanmax(x))
-    lo = float(np.nanmin(x))
+        hi = float(np.nanmax(x))
+        lo = float(np.nanmin(x))
     if hi == lo:
         log.add("flat", f"every sample is {hi:g}: the sensor looks dead or disconnected",
                 channel=channel, t_start=t(0), t_end=t(n), device=device)
         return
-    q = _quantum(x)
-    med = float(np.nanmedian(x[:: max(1, n // 200_000)]))
-    candidates = []
+    candidates: list[tuple[np.ndarray, str]] = []
+    bulk: tuple[float, float] | None = None
     for level, name in ((hi, "maximum"), (lo, "minimum")):
+        at = np.flatnonzero(x == level)
+        if at.size < CLIP_MIN_RUN:
+            continue
+        if bulk is None:  # only now worth the sort: median and quantisation step
+            bulk = (float(np.nanmedian(x[:: max(1, n // 200_000)])), _quantum(x))
+        med, q = bulk
         if abs(level - med) < 16 * q:  # an extreme only a few steps from the bulk: noise
             continue
-        candidates.append((x == level, f"the channel's {name} {level:g}"))
+        candidates.append((at, f"the channel's {name} {level:g}"))
     if recorded is not None:
-        candidates.append((np.abs(recorded) >= _INT16_FULL_SCALE,
+        candidates.append((np.flatnonzero(np.abs(recorded) >= _INT16_FULL_SCALE),
                            "the 16-bit full scale (|raw| >= 32767)"))
-    for mask, what in candidates:
-        starts, ends = find_runs(mask)
+    for at, what in candidates:
+        if at.size < CLIP_MIN_RUN:
+            continue
+        brk = np.flatnonzero(np.diff(at) != 1)
+        starts = at[np.concatenate(([0], brk + 1))]
+        ends = at[np.concatenate((brk, [at.size - 1]))] + 1
         keep = (ends - starts) >= CLIP_MIN_RUN
         for s, e in zip(starts[keep].tolist(), ends[keep].tolist()):
             log.add("clipped", f"{e - s} consecutive samples stuck at {what} from t={t(s):.4f} s "

@@ -71,7 +71,10 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
     Recording
         Per device a DataFrame indexed by ``time_s`` (s from the earliest first sample;
         uniform, dropouts are NaN rows), float32 columns in SI; ``issues`` lists the
-        non-fatal findings (see :mod:`ident.io.quality`).
+        non-fatal findings (see :mod:`ident.io.quality`).  Devices are named by MCAP
+        topic, or for CSV by file (``name.csv`` -> ``name``, ``name.accel.csv`` ->
+        ``accel``).  ``t0_ns`` is ns since the Unix epoch, except for CSV files with
+        relative float seconds, where it counts from their time zero.
 
     Raises
     ------

@@ -230,7 +230,56 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
     unpack_q = struct.Struct("<q").unpack_from
     unpack_Q = struct.Struct("<Q").unpack_from
 
+    # Fast path: messages of one channel repeat everything between t0_ns and data
+    # (rate, channels, units).  After a full parse of a canonical message (t0_ns first,
+    # one packed data field last) those bytes are cached; a message that starts with
+    # t0_ns, repeats them and ends with the data field is decoded from its two ends.
+    t0_tag = (t0_num << 3) | 0
+    data_tag = (data_num << 3) | 2
+    fast_ok = t0_type in ("TYPE_INT64", "TYPE_UINT64") and t0_tag < 0x80 and data_tag < 0x80
+    cache: list = [None]  # (middle bytes, rate, channels, units), per decoder
+
     def decode(buf: bytes) -> Block:
+        c = cache[0]
+        if c is not None and buf[0] == t0_tag:
+            try:
+                pos = 1
+                b = buf[pos]
+                pos += 1
+                t0 = b & 0x7F
+                shift = 7
+                while b & 0x80:
+                    b = buf[pos]
+                    pos += 1
+                    t0 |= (b & 0x7F) << shift
+                    shift += 7
+                middle = c[0]
+                if buf.startswith(middle, pos):
+                    pos += len(middle)
+                    if buf[pos] == data_tag:
+                        pos += 1
+                        b = buf[pos]
+                        pos += 1
+                        ln = b & 0x7F
+                        shift = 7
+                        while b & 0x80:
+                            b = buf[pos]
+                            pos += 1
+                            ln |= (b & 0x7F) << shift
+                            shift += 7
+                        n_ch = len(c[2])
+                        count = ln // data_dtype.itemsize
+                        if (pos + ln == len(buf) and ln % data_dtype.itemsize == 0
+                                and count % n_ch == 0):
+                            if t0 >= (1 << 63):
+                                t0 -= 1 << 64
+                            flat = np.frombuffer(buf, dtype=data_dtype, count=count, offset=pos)
+                            return Block(t0, c[1], c[2], c[3], flat.reshape(n_ch, count // n_ch))
+            except IndexError:
+                pass  # fall through to the full parse, which reports the problem
+        return full(buf)
+
+    def full(buf: bytes) -> Block:
         mv = buf
         n = len(mv)
         pos = 0
@@ -240,8 +289,11 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
         units: list[str] = []
         pieces: list[np.ndarray] = []
         scalars: list[float] = []
+        first_end = -1   # end of the first field when it is t0_ns
+        data_at = -1     # tag position of the (single) data field
         try:
             while pos < n:
+                tag_at = pos
                 # tag (varint)
                 b = mv[pos]
                 pos += 1
@@ -268,6 +320,8 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
                             t0 = (val >> 1) ^ -(val & 1)
                         else:
                             t0 = val - (1 << 64) if val >= (1 << 63) else val
+                        if tag_at == 0:
+                            first_end = pos
                 elif wt == 1:
                     if num == rate_num:
                         rate = unpack_d(mv, pos)[0]
@@ -295,6 +349,7 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
                                                    "of values")
                         pieces.append(np.frombuffer(mv, dtype=data_dtype,
                                                     count=ln // data_dtype.itemsize, offset=pos))
+                        data_at = tag_at
                     elif num == ch_num:
                         channels.append(mv[pos:end].decode())
                     elif num == unit_num:
@@ -320,7 +375,12 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
             flat = np.concatenate(pieces)
         else:
             flat = np.empty(0, dtype=np.float32)
-        return _make_block(t0, rate, channels, units, flat)
+        block = _make_block(t0, rate, channels, units, flat)
+        if fast_ok and first_end > 0 and data_at > first_end and len(pieces) == 1 \
+                and not scalars:
+            cache[0] = (bytes(mv[first_end:data_at]), block.rate_hz, block.channels,
+                        block.units)
+        return block
 
     return decode
 
@@ -366,7 +426,6 @@ def _make_block(t0: int, rate: float, channels: list[str], units: list[str],
 # json -------------------------------------------------------------------------------------
 _DATA_KEY = re.compile(rb'"data"\s*:\s*\[')
 _DATA_END = re.compile(rb"\]\s*\]")
-_NULL = re.compile(r"\bnull\b")
 
 
 def _decode_json(buf: bytes) -> Block:
@@ -405,7 +464,7 @@ def _decode_json(buf: bytes) -> Block:
             with warnings.catch_warnings():  # numpy warns, then stops, at a bad token
                 warnings.simplefilter("ignore")
                 try:
-                    flat = np.fromstring(_NULL.sub("nan", joined), dtype=np.float32, sep=",")
+                    flat = np.fromstring(joined.replace("null", "nan"), dtype=np.float32, sep=",")
                 except ValueError:
                     flat = np.empty(0, dtype=np.float32)
             if flat.size != n_vals:

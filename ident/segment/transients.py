@@ -10,7 +10,8 @@ Method (torque channels)
    averaged.
 2. *Detection.*  A centred moving mean over ``smooth_s`` (80 ms: one period of the
    lowest natural frequency averages the ring-down out) is classified loaded/idle
-   with hysteresis at 25 % / 12 % of the signal's robust range above its idle level;
+   with hysteresis at 25 % / 12 % of its range (0.1-99.9 percentiles) above the idle
+   level;
    every idle->loaded change is a bite, every loaded->idle change a release.  Load
    fluctuation while rolling and offset drift are a few percent and never cross
    both thresholds; a recording whose range is below ``20 sigma`` of its sample noise
@@ -132,8 +133,10 @@ def _running_max_ahead(x: np.ndarray, w: int) -> np.ndarray:
     return maximum_filter1d(x, size=w, origin=-(w // 2), mode="nearest")
 
 
-def _noise_sigma(x: np.ndarray) -> float:
-    d = np.diff(x[:: max(1, x.size // 2_000_000)] if x.size > 4_000_000 else x)
+def _noise_sigma(x: np.ndarray, lag: int = 1) -> float:
+    """Robust sample noise: MAD of differences at ``lag`` (past the signal's own smoothing)."""
+    d = x[lag:] - x[:-lag]
+    d = d[:: max(1, d.size // 2_000_000)]
     d = d[np.isfinite(d)]
     if d.size == 0:
         return 0.0
@@ -175,18 +178,24 @@ class _Event:
 
 
 def _detect(x: np.ndarray, fs: float, *, smooth_s: float, fine_s: float, level_s: float,
-            settle_s: float, min_step: float | None) -> tuple[list[_Event], np.ndarray, float]:
-    """Bites and releases in a level signal ``x`` sampled at ``fs``; also the fine signal."""
+            settle_s: float, min_step: float | None,
+            noise_lag: int = 1) -> tuple[list[_Event], np.ndarray, float]:
+    """Bites and releases in a level signal ``x`` sampled at ``fs``; also the fine signal.
+
+    ``noise_lag``: samples over which ``x`` is already smoothed (its noise is measured
+    from differences that far apart).
+    """
     n = x.size
     w = max(3, int(round(smooth_s * fs)))
     y = _moving_mean(x, w)
     xs = _moving_mean(x, max(1, int(round(fine_s * fs))))
-    sigma = _noise_sigma(x)
-    sample = y[:: max(1, n // 1_000_000)]
+    sigma = _noise_sigma(x, max(1, noise_lag))
+    sample = y[:: max(1, n // 2_000_000)]
     sample = sample[np.isfinite(sample)]
     if sample.size < 10:
         return [], xs, sigma
-    lo, hi = np.percentile(sample, [1.0, 99.0])
+    # the extremes of the 80 ms mean: an idle stretch of 0.1 % of the time still counts
+    lo, hi = np.percentile(sample, [0.1, 99.9])
     rng_ = hi - lo
     floor = max(20.0 * sigma, min_step if min_step is not None else 0.0)
     if not rng_ > floor:
@@ -381,7 +390,7 @@ def _segment_envelope(rec: Recording, names: list[str], *, envelope_s: float, op
     x = env[::step]
     fs = fs_in / step
     t0 = float(frame.index[0])
-    events, xs, sigma = _detect(x, fs, **opts)
+    events, xs, sigma = _detect(x, fs, noise_lag=max(1, int(round(envelope_s * fs))), **opts)
     wins = _windows(events, xs, fs, sigma, **wopts)
     return tuple(Segment(t_start=t0 + ts, t_step=t0 + tp, t_end=t0 + te, kind=ev.kind,
                          static_torque=math.nan, step=math.nan, channel=cols[0],
