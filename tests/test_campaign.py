@@ -217,3 +217,50 @@ def test_unreadable_and_young_files(tmp_path, mill, monkeypatch):
         os.utime(p, (old, old))
     young = {s.file_name for s in discover(folder, min_age_s=600)}
     assert young == {"rec000.mcap", "rec001.mcap"}
+
+
+def test_parent_killed_with_sigkill(tmp_path, mill, mill_path):
+    """kill -9 of the campaign process mid-run: what was committed is whole, the rest redone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    folder = tmp_path / "c"
+    for i in range(8):
+        write_double_recording(folder / f"r{i}.mcap", day=i, seed=i, sleep_s=0.4)
+    url = f"sqlite:///{tmp_path}/r.db"
+    code = ("import sys; from ident.store import run_campaign; "
+            "from test_campaign_doubles import double_process; "
+            f"run_campaign({str(folder)!r}, {str(mill_path)!r}, {url!r}, workers=0, "
+            "process=double_process, progress=False)")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).parent))
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            try:
+                with open_store(url, create=False) as st:
+                    if st.count("recordings") >= 3:
+                        break
+            except StoreError:
+                pass
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    with open_store(url) as st, st.engine.connect() as c:
+        assert c.execute(sa.text("pragma integrity_check")).scalar_one() == "ok"
+        n = st.count("recordings")
+        assert 3 <= n < 8
+        per = dict(c.execute(sa.text("select recording_pk, count(*) from transients "
+                                     "group by recording_pk")).all())
+        assert sorted(per.values()) == [4] * n  # every stored recording is whole
+        assert c.execute(sa.text("select status from runs")).scalar_one() == "running"
+    redo = []
+    s = _run(folder, mill, url, on_stored=lambda f, o: redo.append(f))
+    assert s.n_skipped == n and len(redo) == 8 - n and s.n_failed == 0
