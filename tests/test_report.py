@@ -150,9 +150,9 @@ def test_empty_store_and_cli(tmp_path, store):
 
 
 def test_campaign_cli_exit_codes(tmp_path, mill_path, monkeypatch, capsys):
-    import ident.cli.campaign as cli_campaign
+    import ident.store
 
-    monkeypatch.setattr(cli_campaign, "run_campaign",
+    monkeypatch.setattr(ident.store, "run_campaign",
                         functools.partial(run_campaign, process=double_process))
     good, bad = tmp_path / "good", tmp_path / "bad"
     make_double_campaign(good, n=2, bad=0)

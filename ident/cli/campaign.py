@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..store import Settings, run_campaign
 from .common import load_mill_arg, write_json
 
 #: Exit code of a campaign that finished with failed recordings (cli.md).
@@ -54,6 +53,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..store import Settings, run_campaign  # heavy: imported when the command runs
+
     mill = load_mill_arg(args)
     settings = Settings(family=args.family, fit=not args.no_fit,
                         per_transient=args.per_transient, max_transients=args.max_transients,

@@ -6,7 +6,6 @@ import argparse
 import sys
 
 from ..io.millfile import load_mill
-from ..report import build_report
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -30,6 +29,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..report import build_report  # matplotlib: imported when the command runs
+
     mill = load_mill(args.mill) if args.mill else None
     r = build_report(args.store, args.out, mill=mill, horizon_days=args.horizon_days,
                      title=args.title)

@@ -120,6 +120,11 @@ def _headline(s: MillSection) -> str:
     by = {k: [a for a in s.assessments if a.status == k] for k in _ORDER}
     if not s.assessments:
         color, text = STATUS_COLORS["unknown"], "No wear results yet."
+        q = s.tables.get("quality")
+        why = set(q["kind"]) & {"stage_unavailable", "no_model"} if q is not None else set()
+        if why:
+            text += (" The gap fit or the wear diagnosis did not run for these recordings "
+                     "(see <i>Data quality</i>: " + ", ".join(sorted(why)) + ").")
     elif by["critical"]:
         color = STATUS_COLORS["critical"]
         text = "Act now: " + "; ".join(f"<b>{_e(a.id)}</b> {_e(a.label)} — {_e(a.reason)}"
