@@ -7,7 +7,8 @@ JSON files (with an ``.mcap`` or ``.csv`` name) that state the truth the double
 turns into dicts of the documented cli.md shapes; any file that is not such JSON
 is refused with a :class:`~ident.errors.RecordingError`, as the real reader
 refuses a malformed file.  Extra keys trigger the failure modes under test:
-``crash`` (the worker process dies), ``sleep_s``, ``alloc_mb``, ``fail_stage``.
+``crash`` (the worker process dies), ``sleep_s``, ``alloc_mb``, ``fail_stage``,
+``no_fit`` (no fit stored, as with ``--no-fit``).
 
 The real pipeline is tested end to end in ``tests/test_campaign_e2e.py``.
 """
@@ -121,6 +122,8 @@ def double_process(path: Path, mill: Mill, settings: Settings) -> RecordingOutco
     quality = ({"stage": "read", "kind": "dropout", "message": "telemetry dropout of 12 ms",
                 "channel": "T_C46", "t_start": 3.2, "t_end": 3.212, "fatal": False},
                ) if doc.get("seed", 0) % 3 == 1 else ()
+    if doc.get("no_fit"):  # as with ``ident campaign --no-fit``
+        fit = None
     return RecordingOutcome(status="done", recording=recording, segments=tuple(segments),
                             taf=tuple(taf), fit=fit, diagnosis=diag, quality=quality,
                             elapsed_s=time.time() - started, **base)

@@ -118,6 +118,19 @@ def test_critical_status(tmp_path, mill):
     assert c57.status == "critical" and "critical" in c57.reason
 
 
+def test_gap_trend_from_the_diagnosis_without_fits(tmp_path, mill):
+    for i in range(4):
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=7 * i, seed=i, no_fit=True,
+                               gaps={"C46": 0.002 + 0.0005 * i})
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    assert load_results(url)["element_results"].empty
+    sec = analyse_mill("hsm-f1", load_results(url), figures=False)
+    c46 = next(x for x in sec.assessments if x.id == "C46")
+    assert c46.n == 4 and c46.slope_per_30d == pytest.approx(
+        30 * 0.0005 / 7 * mill.element("C46").gap_mm(1.0), rel=0.3)
+
+
 # ---- the HTML file ------------------------------------------------------------------
 def test_report_is_one_self_contained_file(store, tmp_path):
     r = build_report(store, tmp_path / "out" / "report.html")

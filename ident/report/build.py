@@ -27,7 +27,7 @@ from __future__ import annotations
 import datetime as dt
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 import numpy as np
 import pandas as pd
@@ -265,6 +265,12 @@ def analyse_mill(name: str, res: dict[str, pd.DataFrame], *, mill: Mill | None =
         for e in mill.elements:
             d = er[er["element"] == e.id].sort_values("t0_ns")
             cls = _latest_state(diag, "element", e.id)
+            source = "fit"
+            if d.empty:  # no gap fit (e.g. --no-fit): the diagnosis' regressed gap
+                d = diag[(diag["kind"] == "element") & (diag["target"] == e.id)
+                         & diag["gap"].notna()].sort_values("t0_ns")
+                d = d.assign(gap_ci_lo=np.nan, gap_ci_hi=np.nan, identifiable=np.nan)
+                source = "diagnosis"
             if d.empty and cls is None:
                 continue
             f, unit = (e.gap_mm(1.0), "mm") if e.radius else (1e3, "mrad")
@@ -275,6 +281,8 @@ def analyse_mill(name: str, res: dict[str, pd.DataFrame], *, mill: Mill | None =
                            d["gap"].to_numpy(float) * f, d["gap_ci_lo"].to_numpy(float) * f,
                            d["gap_ci_hi"].to_numpy(float) * f, e.gap_worn * f,
                            e.gap_critical * f, cls, horizon_days, identifiable)
+            if source == "diagnosis" and len(d):
+                p = replace(p, note="gap regressed by the wear diagnosis (no gap fit stored)")
             assessments.append(a)
             panels.append(p)
         bd = diag[(diag["kind"] == "bearing")]
