@@ -160,7 +160,20 @@ class Effect(Protocol):
 
 @dataclass(frozen=True)
 class SymbolicContext:
-    """Symbols an effect can build on (read-only)."""
+    """Symbols an effect can build on (read-only).
+
+    Attributes
+    ----------
+    contact_neg, contact_pos : tuple of SX, optional
+        Per element (mill-file order), the deflections (rad, reduced) where the
+        flanks meet on the negative (``-a``) and drive (``b``) side under the
+        model's own law and parameters (g1: ``-(gap - gap_open)`` and
+        ``gap_open``; g3/g4: ``shift`` -/+ the apparent half-gap; g2: the
+        mill file's values).  Other effects' ``gap_open_shift`` is not included.
+    smoothing : SX, float or None
+        The g1 kink rounding width, rad (None: exact kinks), for effects that
+        add kinks of their own.
+    """
 
     mill: Mill
     theta: Any
@@ -172,6 +185,9 @@ class SymbolicContext:
     ddelta: Any
     motor_index: int
     motor_speed: float
+    contact_neg: tuple = ()
+    contact_pos: tuple = ()
+    smoothing: Any = None
 
 
 @dataclass(frozen=True)
@@ -269,6 +285,19 @@ def _element_torque(e: Element, delta: Any, ddelta: Any, p: dict[str, Any], fami
     return g + e.c * ddelta
 
 
+def _contacts(e: Element, p: dict[str, Any], family: Family) -> tuple[Any, Any]:
+    """Deflections where the flanks meet, negative and drive side, rad (SymbolicContext)."""
+    if family is Family.G1:
+        return -(p["gap"] - p["gap_open"]), p["gap_open"]
+    if family is Family.G3:
+        half = 2.0 / (math.pi * p["sigma"])
+        return p["shift"] - half, p["shift"] + half
+    if family is Family.G4:
+        half = 1.0 / p["sigma"]
+        return p["shift"] - half, p["shift"] + half
+    return -e.a, e.b
+
+
 def build_driveline(mill: Mill, options: ModelOptions = ModelOptions()) -> Driveline:
     """Build the symbolic equations of motion of ``mill``.
 
@@ -327,9 +356,16 @@ def build_driveline(mill: Mill, options: ModelOptions = ModelOptions()) -> Drive
         lim = mill.motor.torque_limit
         T_cmd = ca.fmin(ca.fmax(T_cmd, -lim), lim)
 
+    contact_neg, contact_pos = [], []
+    for e in mill.elements:
+        cn, cp = _contacts(e, {nm: p[pidx[f"{e.id}.{nm}"]] for nm in family_param_names(family)},
+                           family)
+        contact_neg.append(cn)
+        contact_pos.append(cp)
     ctx = SymbolicContext(mill=mill, theta=theta, omega=omega, t=t, T_load=T_load,
                           T_motor_command=T_cmd, delta=delta, ddelta=ddelta, motor_index=im,
-                          motor_speed=mill.motor_speed)
+                          motor_speed=mill.motor_speed, contact_neg=tuple(contact_neg),
+                          contact_pos=tuple(contact_pos), smoothing=smoothing)
     terms: list[EffectTerms] = []
     for eff in options.effects:
         local = ca.vertcat(*[p[pidx[f"{eff.name}@{eff.location}.{nm}"]]
