@@ -30,7 +30,7 @@ import numpy as np
 
 from ident import load_mill
 from ident.report import build_report
-from ident.store import (RecordingKey, RecordingOutcome, Settings, available_stages,
+from ident.store import (RecordingKey, RecordingOutcome, available_stages,
                          make_sample_campaign, open_store, run_campaign)
 
 REPO = Path(__file__).resolve().parents[1]

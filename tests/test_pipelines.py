@@ -1,4 +1,4 @@
-"""pipelines/: the demo (main job), the daily job and the shipped sample campaign (real pipeline)."""
+"""pipelines/: the demo (main job), the daily job and the shipped sample (real pipeline)."""
 
 from __future__ import annotations
 

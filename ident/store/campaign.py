@@ -337,7 +337,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         st.register_mill(mill, mill_text)
         stored = st.stored_keys(shash)
         todo: deque[_Job] = deque()
-        failed_before: list[tuple[str, str]] = []
+        failed_before: list[tuple[str, str]] = []  # (file_name, hash), then (file_name, error)
         for s in sources:
             status = stored.get((s.file_name, s.content_sha256))
             if status is None:
@@ -345,10 +345,11 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
             elif status == "failed" and retry_failed:
                 todo.append(_Job(s, replace=True))
             elif status == "failed":
-                failed_before.append((s.file_name, ""))
+                failed_before.append((s.file_name, s.content_sha256))
         n_skipped = len(sources) - len(todo)
         if failed_before:
-            failed_before = _errors_of(st, failed_before, shash, sources)
+            errors = st.failed_errors(shash)
+            failed_before = [(f, errors.get((f, h), "")) for f, h in failed_before]
         if not todo:
             run_id = st.start_run(directory=str(root), mill=mill, settings_hash=shash,
                                   settings=settings.to_dict(), executor="none",
@@ -398,21 +399,6 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
             elapsed_s=time.perf_counter() - t_begin, executor=ex.name)
     finally:
         st.close()
-
-
-def _errors_of(st: Store, failed: list[tuple[str, str]], shash: str,
-               sources: list[RecordingSource]) -> list[tuple[str, str]]:
-    import sqlalchemy as sa
-
-    from . import schema as S
-
-    r = S.recordings.c
-    names = {f for f, _ in failed}
-    hashes = {s.file_name: s.content_sha256 for s in sources}
-    with st.engine.connect() as conn:
-        rows = conn.execute(sa.select(r.file_name, r.content_sha256, r.error).where(
-            r.settings_hash == shash, r.status == "failed", r.file_name.in_(names))).all()
-    return [(f, e or "") for f, h, e in rows if hashes.get(f) == h]
 
 
 def _write(st: Store, run_id: int, key: RecordingKey, outcome: RecordingOutcome, *, mill: Mill,

@@ -207,6 +207,14 @@ class Store:
                                 .where(r.settings_hash == settings_hash)).all()
         return {(f, h): s for f, h, s in rows}
 
+    def failed_errors(self, settings_hash: str) -> dict[tuple[str, str], str]:
+        """``{(file_name, content_sha256): error}`` of recordings stored as failed."""
+        r = S.recordings.c
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(r.file_name, r.content_sha256, r.error).where(
+                r.settings_hash == settings_hash, r.status == "failed")).all()
+        return {(f, h): e or "" for f, h, e in rows}
+
     def count(self, table: str = "recordings", **where: Any) -> int:
         """Number of rows in ``table`` matching ``column=value`` conditions."""
         t = S.metadata.tables[table]
