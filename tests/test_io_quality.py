@@ -183,6 +183,7 @@ def test_mcap_overlapping_blocks(tmp_path, mill, torque):
     rec = read_recording(p, mill, warn=False)
     issue = only(rec, "non_monotonic")[0]
     assert "overlaps the one before by 150 samples" in issue.message
+    assert issue.t_start == pytest.approx(0.525)
 
 
 def test_log_time_disagreeing_with_t0(tmp_path, mill, torque):
@@ -201,7 +202,9 @@ def test_log_time_disagreeing_with_t0(tmp_path, mill, torque):
                           encode_protobuf(t0, torque.rate_hz, torque.channels, torque.units, d), t0)
         w.finish()
     rec = read_recording(p, mill, warn=False)
-    assert "differs from the block's t0_ns" in only(rec, "timestamp_mismatch")[0].message
+    issue = only(rec, "timestamp_mismatch")[0]
+    assert "log_time +1.000000 s off its t0_ns" in issue.message
+    assert issue.t_start == pytest.approx(0.7)
     assert len(rec.frames["/t"]) == 4000
 
 

@@ -11,7 +11,7 @@ to ``name.csv`` may have siblings ``name.<device>.csv`` (see
 
 The file is streamed with pyarrow's CSV reader (the engine behind
 ``pandas.read_csv(engine="pyarrow")``, used directly because pandas' pyarrow engine
-cannot read in chunks) into float32 arrays sized from the file size; rows are then
+cannot read in chunks) into float32 arrays sized by a count of its lines; rows are then
 put on a uniform grid of the median time step, where missing rows (dropouts) are NaN.
 """
 
@@ -109,7 +109,7 @@ def _iso_to_ns(col, log: IssueLog) -> np.ndarray:
 
 
 def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
-             chunk_samples: int = 1 << 18, siblings: bool = True) -> list[DeviceGrid]:
+             chunk_samples: int = 1 << 15, siblings: bool = True) -> list[DeviceGrid]:
     """Read a CSV recording (and its sibling device files) into device grids.
 
     Parameters
@@ -119,7 +119,8 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
         ``keep(channel_name) -> bool``: channels whose samples are kept.
     log : IssueLog
     chunk_samples : int
-        Rows parsed per batch (bounds the parser's working memory).
+        Rows parsed per batch (bounds the parser's working memory; at most 2 MB of text
+        per batch).
     siblings : bool
         Also read ``name.<device>.csv`` files beside ``name.csv``.
 
@@ -136,6 +137,17 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
         files += [(s, s.name[len(p.stem) + 1:-len(s.suffix)]) for s in csv_siblings(p)]
     return [_read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples)
             for f, dev in files]
+
+
+def _count_lines(path: Path) -> int:
+    """Number of lines (a last line without a newline counts), read in 16 MB pieces."""
+    count = 0
+    last = b"\n"
+    with open(path, "rb") as fh:
+        while piece := fh.read(1 << 24):
+            count += piece.count(b"\n")
+            last = piece[-1:]
+    return count + (last != b"\n")
 
 
 def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: IssueLog,
@@ -164,11 +176,11 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     types = {col_names[ti]: pa.string() if iso else pa.float64()}
     types.update({col_names[i]: pa.float32() for i in kept})
     row_bytes = max(8, len(sep.join(first)) + 1)
-    size = path.stat().st_size
-    cap = int(size / row_bytes * 1.05) + 1024
-    block = int(min(max(chunk_samples * row_bytes, 1 << 16), 1 << 26))
+    cap = max(1, _count_lines(path) - n_comment - 1)  # exact: no growing, no trimming copy
+    # pyarrow's streaming reader parses ~30 blocks ahead: small blocks bound its memory
+    block = int(min(max(chunk_samples * row_bytes, 1 << 16), 1 << 21))
     reader_opts = pacsv.ReadOptions(skip_rows=n_comment + 1, column_names=col_names,
-                                    block_size=block, use_threads=True)
+                                    block_size=block, use_threads=False)
     parse_opts = pacsv.ParseOptions(delimiter=sep)
     conv = pacsv.ConvertOptions(column_types=types, include_columns=[col_names[ti]]
                                 + [col_names[i] for i in kept], decimal_point=decimal,

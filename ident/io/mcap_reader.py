@@ -98,7 +98,9 @@ class _Placer:
         self.n.append(n)
         self.t0.append(block.t0_ns)
 
-    def finish(self, log: IssueLog, corrupt_ns: list[tuple[int, int]]) -> DeviceGrid:
+    def finish(self, log: IssueLog, corrupt_ns: list[tuple[int, int]],
+               origin_ns: int) -> DeviceGrid:
+        """The device's grid; ``origin_ns`` (the recording's start) dates the findings."""
         pos = np.asarray(self.pos, dtype=np.int64)
         n = np.asarray(self.n, dtype=np.int64)
         t0 = np.asarray(self.t0, dtype=np.int64)
@@ -128,12 +130,11 @@ class _Placer:
         for j in np.flatnonzero(nxt > prev_end).tolist():
             gaps.append((int(prev_end[j]) - first, int(nxt[j]) - first))
         for j in np.flatnonzero(nxt < prev_end).tolist():
-            t = (int(nxt[j]) - first) / rate
+            t = (self.ref - origin_ns) / 1e9 + int(nxt[j]) / rate
             log.add("non_monotonic",
-                    f"device {self.topic!r}: the block starting at t={t:.4f} s (relative to the "
-                    f"device start) overlaps the one before by {int(prev_end[j] - nxt[j])} "
-                    "samples; its time goes backwards; the later block in the file wins",
-                    channel=names, device=self.topic)
+                    f"device {self.topic!r}: the block starting at t={t:.4f} s overlaps the one "
+                    f"before by {int(prev_end[j] - nxt[j])} samples: time goes backwards; the "
+                    "block read last wins", channel=names, t_start=t, device=self.topic)
         a, b = first - self.lo, last - self.lo
         data = self.buf[:, a:b]
         if self.buf.shape[1] > 1.1 * (b - a):
@@ -161,6 +162,7 @@ class _Assembler:
         self.last_good_ns: int | None = None
         self.corrupt_ns: list[tuple[int, int]] = []
         self.bad_messages: list[tuple[str, int, BlockDecodeError]] = []
+        self.bad_times: list[tuple[str, int, int]] = []
         self.n_blocks = 0
 
     def channel(self, channel, schema) -> None:
@@ -215,10 +217,7 @@ class _Assembler:
                                  "expected one layout and rate per device (topic)",
                                  channel=",".join(block.channels))
         if abs(msg.log_time - block.t0_ns) * block.rate_hz > 1e9:
-            self.log.add("timestamp_mismatch", f"topic {topic!r}: log_time {msg.log_time} ns "
-                         f"differs from the block's t0_ns {block.t0_ns} by "
-                         f"{(msg.log_time - block.t0_ns) / 1e9:.6f} s; t0_ns is used",
-                         device=topic)
+            self.bad_times.append((topic, msg.log_time, block.t0_ns))  # reported later
         placer.put(block)
         self._count(block)
 
@@ -322,8 +321,8 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
                    if broke else
                    "it holds no readable ident.SampleBlock message")
             raise log.fatal("unreadable", f"nothing readable: {why}")
-        origin = min(p.ref + int(round(min(p.pos) * 1e9 / p.rate))
-                     for p in asm.placers.values())
+        used = [p for p in asm.placers.values() if p.rows.size] or list(asm.placers.values())
+        origin = min(p.ref + int(round(min(p.pos) * 1e9 / p.rate)) for p in used)
         for a, b, offset, exc in bad_chunks:
             log.add("corrupt", f"the chunk at byte {offset} cannot be read "
                     f"({_why(exc)}); its samples from t={(a - origin) / 1e9:.4f} s "
@@ -334,11 +333,16 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
             log.add("corrupt", f"topic {topic!r}: the message logged at t={t:.4f} s is not a "
                     f"sample block ({exc}); skipped, its samples are a dropout", t_start=t,
                     device=topic)
+        for topic, log_time, t0 in asm.bad_times:
+            t = (t0 - origin) / 1e9
+            log.add("timestamp_mismatch", f"topic {topic!r}: the block at t={t:.4f} s has a "
+                    f"log_time {(log_time - t0) / 1e9:+.6f} s off its t0_ns; t0_ns is used",
+                    t_start=t, device=topic)
         if broke is not None:
             t_last = (asm.last_good_ns - origin) / 1e9
             log.add("truncated", f"the file breaks off at byte {broke[0]} of {broke[1]} "
                     f"({_why(broke[2])}); read up to the last good block, "
                     f"which ends at t={t_last:.4f} s; the rest is lost", t_start=t_last)
         for placer in asm.placers.values():
-            content.grids.append(placer.finish(log, asm.corrupt_ns))
+            content.grids.append(placer.finish(log, asm.corrupt_ns, origin))
     return content

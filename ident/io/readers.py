@@ -37,7 +37,7 @@ from .recording import Recording
 __all__ = ["read_recording", "reduced_torques", "align_devices", "DEFAULT_CHUNK_SAMPLES"]
 
 #: Rows per batch when parsing CSV.
-DEFAULT_CHUNK_SAMPLES = 1 << 18
+DEFAULT_CHUNK_SAMPLES = 1 << 15
 
 
 def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = False,
