@@ -109,7 +109,8 @@ def make_synth(mill: Mill, *, seed: int, duration_s: float = 45.0, torque_rate_h
         bars.append((t, t + length, static, rng.uniform(0.010, 0.040), rng.uniform(0.010, 0.040)))
         t += length
         if not idle_done and t > duration_s / 3:
-            idle_stretches.append((t + 1.2, t + idle_s - 0.2))  # after the ring-down, before the next bite
+            # after the release ring-down, before the next bite
+            idle_stretches.append((t + 1.2, t + idle_s - 0.2))
             t += idle_s
             idle_done = True
         else:

@@ -138,8 +138,8 @@ def encode_protobuf(t0_ns: int, rate_hz: float, channels: tuple[str, ...],
 
     ``data`` has shape (n_channels, n_samples); it is written channel-major as float32.
     """
-    parts = [_varint(1 << 3) + _varint(int(t0_ns)),
-             bytes([(2 << 3) | 1]) + struct.pack("<d", float(rate_hz))]
+    parts = [_varint(1 << 3) + _varint(int(t0_ns))] if int(t0_ns) else []  # proto3: 0 omitted
+    parts.append(bytes([(2 << 3) | 1]) + struct.pack("<d", float(rate_hz)))
     parts += [_len_field(3, c.encode()) for c in channels]
     parts += [_len_field(4, u.encode()) for u in units]
     payload = np.ascontiguousarray(data, dtype="<f4").tobytes()
@@ -195,10 +195,11 @@ _VARINT_TYPES = {"TYPE_INT64", "TYPE_UINT64", "TYPE_INT32", "TYPE_UINT32", "TYPE
 
 def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
     from google.protobuf import descriptor_pb2
+    from google.protobuf.message import DecodeError
 
     try:
         fds = descriptor_pb2.FileDescriptorSet.FromString(schema_data)
-    except Exception as exc:  # noqa: BLE001 - protobuf raises its own DecodeError
+    except DecodeError as exc:
         raise BlockDecodeError(f"schema is not a protobuf FileDescriptorSet: {exc}") from None
     fields: dict[str, tuple[int, str, bool]] | None = None
     for fd in fds.file:
@@ -342,11 +343,12 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
                         shift += 7
                     end = pos + ln
                     if end > n:
-                        raise BlockDecodeError("field runs past the end of the message")
+                        raise BlockDecodeError("malformed protobuf message: a field runs "
+                                               "past its end")
                     if num == data_num:
                         if ln % data_dtype.itemsize:
-                            raise BlockDecodeError("packed data length is not a whole number "
-                                                   "of values")
+                            raise BlockDecodeError("malformed protobuf message: packed data "
+                                                   "length is not a whole number of values")
                         pieces.append(np.frombuffer(mv, dtype=data_dtype,
                                                     count=ln // data_dtype.itemsize, offset=pos))
                         data_at = tag_at
@@ -362,7 +364,7 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
                         scalars.append(unpack_f(mv, pos)[0])
                     pos += 4
                 else:
-                    raise BlockDecodeError(f"unsupported protobuf wire type {wt}")
+                    raise BlockDecodeError(f"malformed protobuf message: wire type {wt}")
         except (IndexError, struct.error, UnicodeDecodeError) as exc:
             raise BlockDecodeError(f"malformed protobuf message: {exc}") from None
         if pos != n:
@@ -388,6 +390,7 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
 def _slow_protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
     """Decode through the message class built from the schema (unusual field types)."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from google.protobuf.message import DecodeError
 
     fds = descriptor_pb2.FileDescriptorSet.FromString(schema_data)
     pool = descriptor_pool.DescriptorPool()
@@ -398,7 +401,7 @@ def _slow_protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
     def decode(buf: bytes) -> Block:
         try:
             msg = cls.FromString(buf)
-        except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError
+        except DecodeError as exc:
             raise BlockDecodeError(f"malformed protobuf message: {exc}") from None
         flat = np.fromiter(msg.data, dtype=np.float32, count=len(msg.data))
         return _make_block(int(msg.t0_ns), float(msg.rate_hz), list(msg.channels),
