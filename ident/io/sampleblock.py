@@ -128,6 +128,20 @@ def _varint(value: int) -> bytes:
     return bytes(out)
 
 
+def _read_varint(buf: bytes, pos: int) -> tuple[int, int]:
+    """Decode the varint at ``buf[pos]``; returns (value, position after it)."""
+    b = buf[pos]
+    pos += 1
+    value = b & 0x7F
+    shift = 7
+    while b & 0x80:
+        b = buf[pos]
+        pos += 1
+        value |= (b & 0x7F) << shift
+        shift += 7
+    return value, pos
+
+
 def _len_field(number: int, payload: bytes) -> bytes:
     return _varint((number << 3) | 2) + _varint(len(payload)) + payload
 
@@ -244,30 +258,12 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
         c = cache[0]
         if c is not None and buf[0] == t0_tag:
             try:
-                pos = 1
-                b = buf[pos]
-                pos += 1
-                t0 = b & 0x7F
-                shift = 7
-                while b & 0x80:
-                    b = buf[pos]
-                    pos += 1
-                    t0 |= (b & 0x7F) << shift
-                    shift += 7
+                t0, pos = _read_varint(buf, 1)
                 middle = c[0]
                 if buf.startswith(middle, pos):
                     pos += len(middle)
                     if buf[pos] == data_tag:
-                        pos += 1
-                        b = buf[pos]
-                        pos += 1
-                        ln = b & 0x7F
-                        shift = 7
-                        while b & 0x80:
-                            b = buf[pos]
-                            pos += 1
-                            ln |= (b & 0x7F) << shift
-                            shift += 7
+                        ln, pos = _read_varint(buf, pos + 1)
                         n_ch = len(c[2])
                         count = ln // data_dtype.itemsize
                         if (pos + ln == len(buf) and ln % data_dtype.itemsize == 0
@@ -295,27 +291,10 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
         try:
             while pos < n:
                 tag_at = pos
-                # tag (varint)
-                b = mv[pos]
-                pos += 1
-                tag = b & 0x7F
-                shift = 7
-                while b & 0x80:
-                    b = mv[pos]
-                    pos += 1
-                    tag |= (b & 0x7F) << shift
-                    shift += 7
+                tag, pos = _read_varint(mv, pos)
                 num, wt = tag >> 3, tag & 7
                 if wt == 0:
-                    b = mv[pos]
-                    pos += 1
-                    val = b & 0x7F
-                    shift = 7
-                    while b & 0x80:
-                        b = mv[pos]
-                        pos += 1
-                        val |= (b & 0x7F) << shift
-                        shift += 7
+                    val, pos = _read_varint(mv, pos)
                     if num == t0_num:
                         if zigzag:
                             t0 = (val >> 1) ^ -(val & 1)
@@ -332,15 +311,7 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
                         scalars.append(unpack_d(mv, pos)[0])
                     pos += 8
                 elif wt == 2:
-                    b = mv[pos]
-                    pos += 1
-                    ln = b & 0x7F
-                    shift = 7
-                    while b & 0x80:
-                        b = mv[pos]
-                        pos += 1
-                        ln |= (b & 0x7F) << shift
-                        shift += 7
+                    ln, pos = _read_varint(mv, pos)
                     end = pos + ln
                     if end > n:
                         raise BlockDecodeError("malformed protobuf message: a field runs "
