@@ -446,46 +446,64 @@ def _drive(ex, todo: deque[_Job], mill: Mill, settings: Settings,
     """Keep the executor busy, store outcomes as they come, isolate worker crashes."""
     inflight: dict[Any, _Job] = {}
     suspects: deque[_Job] = deque()
+    idle_restarts = 0
 
-    def submit(job: _Job) -> None:
-        inflight[ex.submit(str(job.source.path), mill, settings)] = job
+    def submit(job: _Job) -> bool:
+        try:
+            inflight[ex.submit(str(job.source.path), mill, settings)] = job
+        except cf.process.BrokenProcessPool:  # a worker died since the last look
+            return False
+        return True
 
     while todo or suspects or inflight:
+        broken = False
         if suspects:
             if not inflight:
                 job = suspects.popleft()
                 job.alone = True
-                submit(job)
+                if not submit(job):
+                    suspects.appendleft(job)
+                    broken = True
         else:
             while todo and len(inflight) < ex.capacity:
-                submit(todo.popleft())
-        broken = False
-        for fut in ex.wait(inflight):
-            job = inflight.pop(fut)
-            try:
-                outcome = fut.result()
-            except cf.process.BrokenProcessPool as exc:
-                broken = True
-                if job.alone:
-                    store_one(job, _worker_died(job, exc))
-                else:
-                    suspects.append(job)
-                continue
-            except Exception as exc:  # noqa: BLE001 - e.g. dask KilledWorker
-                outcome = RecordingOutcome(status="failed", stage="worker",
-                                           error=describe_error("worker", exc),
-                                           error_kind=type(exc).__name__, started_at=time.time(),
-                                           versions=library_versions())
-            store_one(job, outcome)
+                job = todo.popleft()
+                if not submit(job):
+                    todo.appendleft(job)
+                    broken = True
+                    break
+        if not broken:
+            for fut in ex.wait(inflight):
+                job = inflight.pop(fut)
+                try:
+                    outcome = fut.result()
+                except cf.process.BrokenProcessPool as exc:
+                    broken = True
+                    if job.alone:
+                        store_one(job, _worker_died(job, exc))
+                    else:
+                        suspects.append(job)
+                    continue
+                except Exception as exc:  # noqa: BLE001 - e.g. dask KilledWorker
+                    outcome = RecordingOutcome(status="failed", stage="worker",
+                                               error=describe_error("worker", exc),
+                                               error_kind=type(exc).__name__,
+                                               started_at=time.time(),
+                                               versions=library_versions())
+                store_one(job, outcome)
+                idle_restarts = 0
         if broken:
             # every other recording in flight is lost with the pool: keep finished ones,
             # retry the rest one at a time to find the one that kills its worker
             cf.wait(list(inflight))
             for fut, job in list(inflight.items()):
-                exc = fut.exception()
-                if exc is None:
+                if fut.exception() is None:
                     store_one(job, fut.result())
                 else:
                     suspects.append(job)
+            if not inflight:
+                idle_restarts += 1
+                if idle_restarts > 3:
+                    raise CampaignError("the worker processes die as they start (see the "
+                                        "messages above; memory limit too low?)")
             inflight.clear()
             ex.restart()
