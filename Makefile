@@ -14,7 +14,7 @@ JOBS   ?= 2
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test,dask]"
+	$(PY) -m pip install --quiet -e ".[test,dask,postgres]"
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
