@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["g1", "g2", "g3", "g4", "piecewise", "smooth_max", "smooth_min", "g1_smooth",
+__all__ = ["g1", "g2", "g3", "g4", "piecewise", "smooth_max", "smooth_min", "smooth_max_c1",
+           "smooth_min_c1", "g1_smooth",
            "piecewise_smooth", "g1_smooth_error_bound", "element_torque_law"]
 
 
@@ -110,29 +111,60 @@ def smooth_min(x: Any, w: Any, xp: Any = np) -> Any:
     return 0.5 * (x - xp.sqrt(x * x + w * w))
 
 
+def smooth_max_c1(x: Any, w: Any, xp: Any = np) -> Any:
+    """Smooth ``max(x, 0)`` rounded only on ``|x| < w/2`` (quadratic blend, C1).
+
+    Exact outside ``[-w/2, w/2]``, ``0 <= smooth_max_c1 - max(x, 0) <= w/8``:
+    the smoothing leaves no tail, so a contact begins no earlier than ``w/2``
+    before the kink.  For the same width it biases impact dynamics (and
+    fitted gaps) about three times less than :func:`smooth_max`.
+    """
+    q = xp.fmin(xp.fmax(x + 0.5 * w, 0), w)
+    return q * q / (2 * w) + xp.fmax(x - 0.5 * w, 0)
+
+
+def smooth_min_c1(x: Any, w: Any, xp: Any = np) -> Any:
+    """Smooth ``min(x, 0)``: ``-smooth_max_c1(-x, w)``."""
+    return -smooth_max_c1(-x, w, xp)
+
+
+def _smoothers(kind: str) -> tuple[Any, Any]:
+    if kind == "sqrt":
+        return smooth_max, smooth_min
+    if kind == "c1":
+        return smooth_max_c1, smooth_min_c1
+    raise ValueError(f"smoothing kind must be 'sqrt' or 'c1'. Got {kind!r}.")
+
+
 def g1_smooth(delta: Any, a: Any, b: Any, k1: Any, k2: Any, k3: Any, w: Any,
-              xp: Any = np) -> Any:
+              xp: Any = np, kind: str = "sqrt") -> Any:
     """g1 with its kinks rounded over width ``w`` (rad): explicit gaps for the optimiser.
 
     ``|g1_smooth - g1| <= (k1 + k3 + 2*k2) * w / 2`` for every ``delta``
     (:func:`g1_smooth_error_bound`); as ``w -> 0`` it tends to :func:`g1`.
     """
-    d_pos = smooth_max(delta - b, w, xp)
-    d_neg = smooth_min(delta + a, w, xp)
+    smax, smin = _smoothers(kind)
+    d_pos = smax(delta - b, w, xp)
+    d_neg = smin(delta + a, w, xp)
     inside = delta - d_pos - d_neg  # = clip(delta, -a, b) up to the rounding
     return k2 * inside + k3 * d_pos + k1 * d_neg
 
 
 def piecewise_smooth(delta: Any, a: Any, b: Any, k1: Any, k2: Any, k3: Any, w: Any,
-                     knee: Any = None, k_after: Any = None, xp: Any = np) -> Any:
-    """:func:`piecewise` with every kink rounded over width ``w`` (rad)."""
+                     knee: Any = None, k_after: Any = None, xp: Any = np,
+                     kind: str = "sqrt") -> Any:
+    """:func:`piecewise` with every kink rounded over width ``w`` (rad).
+
+    ``kind``: ``"sqrt"`` (:func:`smooth_max`) or ``"c1"`` (:func:`smooth_max_c1`).
+    """
     if knee is None or k_after is None:
-        return g1_smooth(delta, a, b, k1, k2, k3, w, xp)
-    d_pos = smooth_max(delta - b, w, xp)
-    d_neg = smooth_min(delta + a, w, xp)
+        return g1_smooth(delta, a, b, k1, k2, k3, w, xp, kind)
+    smax, smin = _smoothers(kind)
+    d_pos = smax(delta - b, w, xp)
+    d_neg = smin(delta + a, w, xp)
     inside = delta - d_pos - d_neg
-    pos = k3 * d_pos + (k_after - k3) * smooth_max(d_pos - knee, w, xp)
-    neg = k1 * d_neg + (k_after - k1) * smooth_min(d_neg + knee, w, xp)
+    pos = k3 * d_pos + (k_after - k3) * smax(d_pos - knee, w, xp)
+    neg = k1 * d_neg + (k_after - k1) * smin(d_neg + knee, w, xp)
     return k2 * inside + pos + neg
 
 
