@@ -203,6 +203,9 @@ class ModelOptions:
         ``"param"``: the width is the model's last parameter, ``"smoothing"``
         (rad, default 1e-4), so that a fit can continue on it without
         rebuilding the model.
+    smoothing_kind : str
+        How the g1 kinks are rounded: ``"sqrt"`` (``laws.smooth_max``) or
+        ``"c1"`` (``laws.smooth_max_c1``, exact outside the width).
     effects : tuple of Effect
         Terms for effects the mill file leaves out (ident.model.effects).
     bearings : bool
@@ -211,6 +214,7 @@ class ModelOptions:
 
     family: Family = Family.G1
     smoothing: float | str | None = None
+    smoothing_kind: str = "sqrt"
     effects: tuple = ()
     bearings: bool = False
 
@@ -264,7 +268,7 @@ class Driveline:
 
 
 def _element_torque(e: Element, delta: Any, ddelta: Any, p: dict[str, Any], family: Family,
-                    smoothing: Any, b_shift: Any = 0.0) -> Any:
+                    smoothing: Any, b_shift: Any = 0.0, kind: str = "sqrt") -> Any:
     """Restoring torque g(delta) + c*ddelta of one element under a family."""
     if family is Family.G1:
         gap, b = p["gap"], p["gap_open"] + b_shift
@@ -275,7 +279,7 @@ def _element_torque(e: Element, delta: Any, ddelta: Any, p: dict[str, Any], fami
             g = laws.piecewise(delta, a, b, e.k, e.k_gap, e.k, knee, k_after, xp=ca)
         else:
             g = laws.piecewise_smooth(delta, a, b, e.k, e.k_gap, e.k, smoothing, knee, k_after,
-                                      xp=ca)
+                                      xp=ca, kind=kind)
     elif family is Family.G2:
         g = laws.g2(delta, p["a1"], p["a2"], p["a3"], xp=ca)
     elif family is Family.G3:
@@ -380,7 +384,8 @@ def build_driveline(mill: Mill, options: ModelOptions = ModelOptions()) -> Drive
     tau = []
     for i, e in enumerate(mill.elements):
         ep = {nm: p[pidx[f"{e.id}.{nm}"]] for nm in family_param_names(family)}
-        ti = _element_torque(e, delta[i], ddelta[i], ep, family, smoothing, b_shift[i])
+        ti = _element_torque(e, delta[i], ddelta[i], ep, family, smoothing, b_shift[i],
+                             options.smoothing_kind)
         for tm in terms:
             if i in tm.element_torque:
                 ti = ti + tm.element_torque[i]
