@@ -128,6 +128,13 @@ def _measure(kind: str, paths: list[str]) -> dict[str, float]:
         channels = list(TORQUE) if kind == "ours-torque" else None
         rec = read_recording(paths[0], channels=channels, warn=False)
         assert rec.issues == (), rec.issues
+    elif kind == "ours-windows":  # the whole file, one minute at a time (iter_recording)
+        from ident.io import iter_recording
+
+        n = 0
+        for rec in iter_recording(paths[0], window_s=60.0, warn=False):
+            n += sum(len(f) for f in rec.frames.values())
+            del rec
     else:
         raise SystemExit(f"unknown measurement {kind!r}")
     seconds = time.perf_counter() - t
@@ -169,6 +176,7 @@ def main(argv: list[str] | None = None) -> None:
             ours = _child("ours", paths)
             rows.append((fmt, size_mb, floor_kind, floor, ours))
         torque_only = _child("ours-torque", files["mcap-protobuf"])
+        windows = {fmt: _child("ours-windows", files[fmt]) for fmt in ("mcap-protobuf", "csv")}
         print()
         print(f"{'format':<14}{'size MB':>9}{'floor s':>9}{'floor MB/s':>11}{'ours s':>8}"
               f"{'ours MB/s':>10}{'ratio':>7}{'floor RSS':>10}{'ours RSS':>9}")
@@ -184,6 +192,9 @@ def main(argv: list[str] | None = None) -> None:
               f"process baseline after imports ~{rows[0][4]['base_rss_mb']:.0f} MB")
         print(f"torque channels only (channels=...), MCAP protobuf: "
               f"{torque_only['seconds']:.1f} s, peak RSS {torque_only['peak_rss_mb']:.0f} MB")
+        for fmt, w in windows.items():
+            print(f"whole file in 60 s windows (iter_recording), {fmt}: {w['seconds']:.1f} s, "
+                  f"peak RSS {w['peak_rss_mb']:.0f} MB")
         pb = rows[0]
         ratio = pb[4]["seconds"] / pb[3]["seconds"]
         print(f"goal: protobuf MCAP within 3x of the bare loop: {ratio:.2f}x -> "

@@ -25,10 +25,11 @@ from typing import Callable
 
 import numpy as np
 
+from ..errors import RecordingError
 from .grid import DeviceGrid
 from .quality import IssueLog
 
-__all__ = ["read_csv", "split_header", "csv_siblings"]
+__all__ = ["read_csv", "split_header", "csv_siblings", "first_time", "last_time"]
 
 _UNIT = re.compile(r"^\s*(.*?)\s*\[\s*([^\]]*?)\s*\]\s*$")
 _TIME_NAMES = {"time", "time_s", "timestamp", "t", "time [s]"}
@@ -109,7 +110,8 @@ def _iso_to_ns(col, log: IssueLog) -> np.ndarray:
 
 
 def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
-             chunk_samples: int = 1 << 15, siblings: bool = True) -> list[DeviceGrid]:
+             chunk_samples: int = 1 << 15, siblings: bool = True,
+             window_s: tuple[float, float] | None = None) -> list[DeviceGrid]:
     """Read a CSV recording (and its sibling device files) into device grids.
 
     Parameters
@@ -123,6 +125,10 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
         per batch).
     siblings : bool
         Also read ``name.<device>.csv`` files beside ``name.csv``.
+    window_s : (float, float), optional
+        Keep only the rows at ``[start, end)`` s from the recording's start (the
+        earliest first time over the files); the rest is parsed and dropped batch by
+        batch, so memory follows the window.
 
     Returns
     -------
@@ -135,8 +141,115 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
     files = [(p, p.stem)]
     if siblings:
         files += [(s, s.name[len(p.stem) + 1:-len(s.suffix)]) for s in csv_siblings(p)]
-    return [_read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples)
-            for f, dev in files]
+    if window_s is None:
+        return [_read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples)
+                for f, dev in files]
+    firsts = [first_time(f, log) for f, _ in files]
+    origin = min(firsts)
+    out = []
+    for (f, dev), t_first in zip(files, firsts):
+        g = _read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples,
+                      window=(origin + window_s[0], origin + window_s[1]))
+        if g is not None:
+            g.origin_ns = _to_ns(origin)
+            out.append(g)
+    if not out:
+        raise log.fatal("empty_window", f"no row between t={window_s[0]:.4f} s and "
+                        f"t={window_s[1]:.4f} s from the recording's start",
+                        time=float(window_s[0]))
+    return out
+
+
+def _to_ns(t: float) -> int:
+    """A file time (float s, or ns as float for ISO files) as int ns."""
+    return int(round(t * 1e9))
+
+
+def _parse_time(text: str, decimal: str, log: IssueLog) -> float:
+    """One time cell as float s (ISO-8601 times: s since the Unix epoch)."""
+    text = text.strip()
+    try:
+        return float(text.replace(",", ".") if decimal == "," else text)
+    except ValueError:
+        pass
+    import pandas as pd
+
+    try:
+        ts = pd.Timestamp(text)
+        ts = ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+        return ts.value / 1e9
+    except (ValueError, TypeError) as exc:
+        raise log.fatal("unreadable", f"time cell {text!r} is neither float seconds nor an "
+                        f"ISO-8601 timestamp ({exc})") from None
+
+
+def _offset_before(path: Path, header_lines: int, sep: str, ti: int, decimal: str,
+                   t: float, log: IssueLog) -> int:
+    """Byte offset of a line start at or before the first row with time >= ``t`` (float s).
+
+    A bisection over the file's bytes (rows in time order, as telemetry.md requires);
+    0 when the window starts in the first 1 MB, where reading from the top is as cheap.
+    """
+    with open(path, "rb") as fh:
+        for _ in range(header_lines):
+            fh.readline()
+        lo, hi = fh.tell(), fh.seek(0, 2)
+
+        def time_at(pos: int) -> tuple[float, int] | None:
+            fh.seek(pos)
+            if pos:
+                fh.readline()  # to the next line start
+            start = fh.tell()
+            line = fh.readline().decode("utf-8", errors="replace")
+            cells = line.rstrip("\r\n").split(sep)
+            if len(cells) <= ti or not cells[ti].strip():
+                return None
+            try:
+                return _parse_time(cells[ti], decimal, log), start
+            except RecordingError:
+                return None
+
+        data_start = lo
+        while hi - lo > 1 << 16:
+            mid = (lo + hi) // 2
+            got = time_at(mid)
+            if got is None or got[0] >= t:
+                hi = mid
+            else:
+                lo = mid
+        if lo - data_start < 1 << 20:
+            return 0
+        fh.seek(lo)
+        fh.readline()
+        return fh.tell()
+
+
+def first_time(path: Path, log: IssueLog) -> float:
+    """The first data row's time, float s (ISO-8601: s since the Unix epoch)."""
+    _, _, names, first, decimal = _sniff(path, log)
+    ti = _time_column(names, log)
+    if not first or ti >= len(first):
+        raise log.fatal("unreadable", f"{path.name}: the CSV file has a header but no data rows")
+    return _parse_time(first[ti], decimal, log)
+
+
+def last_time(path: Path, log: IssueLog) -> float:
+    """The last data row's time, float s (read from the file's end)."""
+    n_comment, sep, names, first, decimal = _sniff(path, log)
+    ti = _time_column(names, log)
+    with open(path, "rb") as fh:
+        size = fh.seek(0, 2)
+        back = min(size, 1 << 16)
+        fh.seek(size - back)
+        tail = fh.read().decode("utf-8", errors="replace").splitlines()
+    for line in reversed(tail):
+        cells = line.split(sep)
+        if len(cells) > ti and cells[ti].strip():
+            try:
+                return _parse_time(cells[ti], decimal, log)
+            except RecordingError:
+                continue
+    return first_time(path, log)
 
 
 def _count_lines(path: Path) -> int:
@@ -151,7 +264,8 @@ def _count_lines(path: Path) -> int:
 
 
 def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: IssueLog,
-              chunk_samples: int) -> DeviceGrid:
+              chunk_samples: int, window: tuple[float, float] | None = None
+              ) -> DeviceGrid | None:
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
@@ -176,7 +290,6 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     types = {col_names[ti]: pa.string() if iso else pa.float64()}
     types.update({col_names[i]: pa.float32() for i in kept})
     row_bytes = max(8, len(sep.join(first)) + 1)
-    cap = max(1, _count_lines(path) - n_comment - 1)  # exact: no growing, no trimming copy
     # pyarrow's streaming reader parses ~30 blocks ahead: small blocks bound its memory
     block = int(min(max(chunk_samples * row_bytes, 1 << 16), 1 << 21))
     reader_opts = pacsv.ReadOptions(skip_rows=n_comment + 1, column_names=col_names,
@@ -186,20 +299,52 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
                                 + [col_names[i] for i in kept], decimal_point=decimal,
                                 null_values=["", "nan", "NaN", "NAN", "null", "NULL", "NA",
                                              "N/A", "-nan"], strings_can_be_null=True)
+    offset = 0
+    if window is None:
+        cap = max(1, _count_lines(path) - n_comment - 1)  # exact: no growing, no trimming copy
+    else:  # start near the window (a bisection over the bytes); grow as rows arrive
+        cap = max(chunk_samples, 1 << 12)
+        lo_t, hi_t = (int(round(w * 1e9)) for w in window) if iso else window
+        offset = _offset_before(path, n_comment + 1, sep, ti, decimal, window[0], log)
+        if offset:
+            reader_opts = pacsv.ReadOptions(skip_rows=0, column_names=col_names,
+                                            block_size=block, use_threads=False)
     t_buf = np.empty(cap, dtype=np.int64 if iso else np.float64)
     d_buf = np.empty((len(kept), cap), dtype=np.float32)
     n = 0
     try:
-        reader = pacsv.open_csv(path, read_options=reader_opts, parse_options=parse_opts,
+        source = path
+        if offset:
+            source = open(path, "rb")  # noqa: SIM115 - closed below
+            source.seek(offset)
+        reader = pacsv.open_csv(source, read_options=reader_opts, parse_options=parse_opts,
                                 convert_options=conv)
         for batch in reader:
             m = batch.num_rows
+            sel = None
+            if window is not None:
+                tcol = batch.column(col_names[ti])
+                tv = _iso_to_ns(tcol, log) if iso else tcol.to_numpy(zero_copy_only=False)
+                inside = (tv >= lo_t) & (tv < hi_t)
+                if not inside.any():
+                    if m and np.nanmin(tv) >= hi_t:
+                        break  # past the window
+                    continue
+                sel = np.flatnonzero(inside)
+                m = sel.size
             if n + m > t_buf.size:
                 new_cap = max(n + m, int(t_buf.size * 1.25))
                 t_buf = np.concatenate([t_buf[:n], np.empty(new_cap - n, dtype=t_buf.dtype)])
                 nd = np.empty((len(kept), new_cap), dtype=np.float32)
                 nd[:, :n] = d_buf[:, :n]
                 d_buf = nd
+            if sel is not None:
+                t_buf[n:n + m] = tv[sel]
+                for r, i in enumerate(kept):
+                    d_buf[r, n:n + m] = batch.column(col_names[i]).to_numpy(
+                        zero_copy_only=False)[sel]
+                n += m
+                continue
             tcol = batch.column(col_names[ti])
             if iso:
                 t_buf[n:n + m] = _iso_to_ns(tcol, log)
@@ -211,7 +356,12 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError, OSError) as exc:
         raise log.fatal("unreadable", f"{path.name}: cannot parse the CSV file after row "
                         f"{n + 1}: {exc}") from None
+    finally:
+        if offset:
+            source.close()
     if n == 0:
+        if window is not None:
+            return None  # this file holds nothing inside the window
         raise log.fatal("unreadable", f"{path.name}: the CSV file has no data rows")
     t_buf = t_buf[:n]
     # a view keeps the spare capacity alive; copy only when that is more than 10 %

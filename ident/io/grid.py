@@ -39,6 +39,9 @@ class DeviceGrid:
     corrupt_ns : list of (int, int)
         Time ranges (ns, same origin as ``start_ns``) lost to corrupt data and
         already reported, so their gaps are not reported again as dropouts.
+    origin_ns : int, optional
+        The device's first sample in the whole file (same origin as ``start_ns``)
+        when only a time window of it was read; None when all of it was.
     """
 
     name: str
@@ -51,6 +54,7 @@ class DeviceGrid:
     all_channels: tuple[str, ...] = ()
     time_buffer: np.ndarray | None = None
     corrupt_ns: list[tuple[int, int]] = field(default_factory=list)
+    origin_ns: int | None = None
 
     @property
     def n_samples(self) -> int:

@@ -8,10 +8,19 @@ grid at ``round((t0_ns - t_ref) * rate_hz / 1e9)``, so out-of-order blocks land 
 place and missing blocks stay NaN (dropouts, never interpolated).  Memory: the
 device arrays are allocated once, sized from the summary's message counts, and
 each block is copied straight in from the message bytes (float32).
+
+A time window (``window_ns``, relative to the recording's start) reads only the
+indexed chunks that can hold samples inside it and keeps only those samples, so
+that memory follows the window, not the file: see
+:func:`ident.io.readers.iter_recording`.  The recording's start is the earliest
+message ``log_time`` of the summary (the first message's, for a file without
+one).
 """
+
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass, field
 from typing import Callable
@@ -22,7 +31,10 @@ from .grid import DeviceGrid
 from .quality import RATE_TOLERANCE, IssueLog
 from .sampleblock import SCHEMA_NAME, Block, BlockDecodeError, make_decoder
 
-__all__ = ["read_mcap", "McapContent"]
+__all__ = ["read_mcap", "McapContent", "mcap_span_ns", "MAX_BLOCK_NS"]
+
+#: Longest sample block assumed when choosing the chunks a time window needs, ns.
+MAX_BLOCK_NS = 60 * 10**9
 
 try:  # decompressors raise their own error types on corrupt chunks
     from lz4.frame import LZ4FrameError as _LZ4Error  # type: ignore[attr-defined]
@@ -56,6 +68,8 @@ class McapContent:
     grids: list[DeviceGrid]
     metadata: dict[str, str] = field(default_factory=dict)
     mill_toml: str | None = None
+    #: the recording's start, ns since the epoch (set when a time window was read)
+    origin_ns: int | None = None
 
 
 class _Placer:
@@ -151,10 +165,11 @@ class _Assembler:
     """Decodes messages per MCAP channel and feeds the placers."""
 
     def __init__(self, log: IssueLog, keep: Callable[[str], bool],
-                 counts: dict[int, int]) -> None:
+                 counts: dict[int, int], window_abs_ns: tuple[int, int] | None = None) -> None:
         self.log = log
         self.keep = keep
         self.counts = counts
+        self.window = window_abs_ns
         self.decoders: dict[int, Callable[[bytes], Block] | None] = {}
         self.topics: dict[int, str] = {}
         self.placers: dict[str, _Placer] = {}
@@ -195,6 +210,10 @@ class _Assembler:
         except BlockDecodeError as exc:
             self.bad_messages.append((topic, msg.log_time, exc))  # reported with times later
             return
+        if self.window is not None:
+            block = _clip(block, *self.window)
+            if block is None:
+                return
         placer = self.placers.get(topic)
         if placer is None:
             if not any(self.keep(c) for c in block.channels):
@@ -205,6 +224,9 @@ class _Assembler:
                 self._count(block)
                 return
             cap = self.counts.get(msg.channel_id, 0) * block.data.shape[1]
+            if self.window is not None:
+                span = (self.window[1] - self.window[0]) * block.rate_hz / 1e9
+                cap = min(cap, int(span) + 2 * block.data.shape[1])
             placer = self.placers[topic] = _Placer(topic, block, self.keep, cap)
         elif block.channels != placer.channels or block.rate_hz != placer.rate:
             what = ("channels " + str(list(block.channels))) if block.channels != placer.channels \
@@ -227,7 +249,22 @@ class _Assembler:
         self.n_blocks += 1
 
 
-def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapContent:
+def _clip(block: Block, lo_ns: int, hi_ns: int) -> Block | None:
+    """The part of ``block`` with sample times in ``[lo_ns, hi_ns)``; None if nothing."""
+    n = block.data.shape[1]
+    per = 1e9 / block.rate_hz
+    k0 = max(0, math.ceil((lo_ns - block.t0_ns) / per - 1e-9))
+    k1 = min(n, math.ceil((hi_ns - block.t0_ns) / per - 1e-9))
+    if k1 <= k0:
+        return None
+    if k0 == 0 and k1 == n:
+        return block
+    return Block(t0_ns=block.t0_ns + int(round(k0 * per)), rate_hz=block.rate_hz,
+                 channels=block.channels, units=block.units, data=block.data[:, k0:k1])
+
+
+def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog,
+              window_ns: tuple[int, int] | None = None) -> McapContent:
     """Read the sample blocks, metadata and mill attachment of an MCAP file.
 
     Parameters
@@ -237,6 +274,8 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
         ``keep(channel_name) -> bool``: channels whose samples are kept.
     log : IssueLog
         Receives the findings (truncation, corrupt chunks, dropouts, overlaps).
+    window_ns : (int, int), optional
+        Keep only samples at ``[start, end)`` ns from the recording's start.
 
     Raises
     ------
@@ -270,11 +309,21 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
                          if summary is not None and summary.statistics is not None else {})
         bad_chunks: list[tuple[int, int, int, BaseException]] = []
         broke: tuple[int, int, BaseException] | None = None
-        if summary is not None and summary.chunk_indexes:
+        indexed = summary is not None and bool(summary.chunk_indexes)
+        if window_ns is not None:
+            start = (min(c.message_start_time for c in summary.chunk_indexes) if indexed
+                     else _first_log_time(fh, failures))
+            content.origin_ns = start
+            asm.window = (start + int(window_ns[0]), start + int(window_ns[1]))
+        if indexed:
             for ch in summary.channels.values():
                 asm.channel(ch, summary.schemas.get(ch.schema_id))
             for ci in sorted(summary.chunk_indexes,
                              key=lambda c: (c.message_start_time, c.chunk_start_offset)):
+                if asm.window is not None and (
+                        ci.message_start_time >= asm.window[1]
+                        or ci.message_end_time < asm.window[0] - MAX_BLOCK_NS):
+                    continue  # holds no sample of the window
                 try:
                     fh.seek(ci.chunk_start_offset + 1 + 8)
                     chunk = Chunk.read(ReadDataStream(fh))
@@ -317,12 +366,19 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
             except failures as exc:
                 broke = (pos, fh.seek(0, 2), exc)
         if asm.n_blocks == 0:
+            if asm.window is not None and content.origin_ns is not None:
+                a, b = ((w - content.origin_ns) / 1e9 for w in asm.window)
+                raise log.fatal("empty_window", f"no sample between t={a:.4f} s and "
+                                f"t={b:.4f} s from the recording's start", time=a)
             why = (f"the file breaks at byte {broke[0]} of {broke[1]} ({_why(broke[2])})"
                    if broke else
                    "it holds no readable ident.SampleBlock message")
             raise log.fatal("unreadable", f"nothing readable: {why}")
         used = [p for p in asm.placers.values() if p.rows.size] or list(asm.placers.values())
         origin = min(p.ref + int(round(min(p.pos) * 1e9 / p.rate)) for p in used)
+        if content.origin_ns is not None:
+            origin = min(origin, content.origin_ns)
+            content.origin_ns = origin
         for a, b, offset, exc in bad_chunks:
             log.add("corrupt", f"the chunk at byte {offset} cannot be read "
                     f"({_why(exc)}); its samples from t={(a - origin) / 1e9:.4f} s "
@@ -344,5 +400,52 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog) -> McapC
                     f"({_why(broke[2])}); read up to the last good block, "
                     f"which ends at t={t_last:.4f} s; the rest is lost", t_start=t_last)
         for placer in asm.placers.values():
-            content.grids.append(placer.finish(log, asm.corrupt_ns, origin))
+            grid = placer.finish(log, asm.corrupt_ns, origin)
+            grid.origin_ns = content.origin_ns
+            content.grids.append(grid)
     return content
+
+
+def _first_log_time(fh, failures: tuple[type[BaseException], ...]) -> int:
+    """``log_time`` of the first message of a file streamed from its start."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    fh.seek(0)
+    try:
+        for rec in StreamReader(fh, validate_crcs=True).records:
+            if isinstance(rec, Message):
+                return int(rec.log_time)
+    except failures:
+        pass
+    finally:
+        fh.seek(0)
+    return 0
+
+
+def mcap_span_ns(path: str) -> tuple[int, int] | None:
+    """``(first, last)`` message log times of an MCAP file (its summary, or a stream)."""
+    from mcap.reader import make_reader
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    failures = _failures()
+    with open(path, "rb") as fh:
+        try:
+            summary = make_reader(fh).get_summary()
+        except failures:
+            summary = None
+        if summary is not None and summary.chunk_indexes:
+            return (min(c.message_start_time for c in summary.chunk_indexes),
+                    max(c.message_end_time for c in summary.chunk_indexes))
+        fh.seek(0)
+        lo = hi = None
+        try:
+            for rec in StreamReader(fh, validate_crcs=False).records:
+                if isinstance(rec, Message):
+                    t = int(rec.log_time)
+                    lo = t if lo is None else min(lo, t)
+                    hi = t if hi is None else max(hi, t)
+        except failures:
+            pass
+    return None if lo is None else (lo, hi)

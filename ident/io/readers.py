@@ -19,22 +19,25 @@ place, and the DataFrames wrap the arrays without copying.
 
 from __future__ import annotations
 
+import math
+import warnings
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 import pandas as pd
 
 from ..description import Mill, Quantity
-from ..errors import RecordingError
+from ..errors import DataQualityWarning, RecordingError
 from ..units import normalize_unit, quantity_of_unit, to_si_factor
-from .csv_reader import read_csv
+from .csv_reader import first_time, last_time, read_csv
 from .grid import DeviceGrid
-from .mcap_reader import read_mcap
+from .mcap_reader import MAX_BLOCK_NS, mcap_span_ns, read_mcap
 from .quality import IssueLog, gap_issues, gap_mask_of, scan_channel
 from .recording import Recording
 
-__all__ = ["read_recording", "reduced_torques", "align_devices", "DEFAULT_CHUNK_SAMPLES"]
+__all__ = ["read_recording", "iter_recording", "recording_span", "reduced_torques",
+           "align_devices", "DEFAULT_CHUNK_SAMPLES"]
 
 #: Rows per batch when parsing CSV.
 DEFAULT_CHUNK_SAMPLES = 1 << 15
@@ -43,7 +46,8 @@ DEFAULT_CHUNK_SAMPLES = 1 << 15
 def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = False,
                    channels: Iterable[str] | None = None,
                    chunk_samples: int = DEFAULT_CHUNK_SAMPLES, siblings: bool = True,
-                   warn: bool = True) -> Recording:
+                   warn: bool = True, t_start: float | None = None,
+                   t_end: float | None = None) -> Recording:
     """Read an MCAP or CSV recording into SI, checking its quality.
 
     Parameters
@@ -65,6 +69,11 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
         Read a CSV file's sibling device files too.
     warn : bool
         Emit every finding as a :class:`~ident.errors.DataQualityWarning` as well.
+    t_start, t_end : float, optional
+        Read only the samples at ``[t_start, t_end)`` s from the recording's start
+        (memory follows the window; :func:`iter_recording` walks a long recording
+        this way).  Times in the result stay seconds from the recording's start, so
+        the frames begin near ``t_start``; findings cover the window only.
 
     Returns
     -------
@@ -80,8 +89,8 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
     ------
     RecordingError
         Unknown format, unreadable file, a unit that disagrees with the mill file, a
-        rate that disagrees with the timestamps, a requested channel that is absent, or
-        no mapped channel at all.
+        rate that disagrees with the timestamps, a requested channel that is absent,
+        no mapped channel at all, or no sample inside the requested window.
     ident.errors.MillFileError
         The attached ``mill.toml`` is invalid (only when ``mill`` is None).
     """
@@ -91,6 +100,14 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
     if ext not in (".mcap", ".csv"):
         raise log.fatal("unreadable", f"unknown recording format {p.suffix!r}; expected "
                         "'.mcap' or '.csv'")
+    window = None
+    if t_start is not None or t_end is not None:
+        lo = 0.0 if t_start is None else float(t_start)
+        hi = math.inf if t_end is None else float(t_end)
+        if not (lo >= 0.0 and hi > lo):
+            raise log.fatal("bad_window", f"expected 0 <= t_start < t_end. Got t_start="
+                            f"{t_start!r}, t_end={t_end!r}")
+        window = (lo, hi)
     wanted = None if channels is None else tuple(channels)
     mapped = None if mill is None else {c.name for c in mill.channels}
 
@@ -102,7 +119,9 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
     metadata: dict[str, str] = {}
     mill_toml = None
     if ext == ".mcap":
-        content = read_mcap(str(p), keep=keep, log=log)
+        content = read_mcap(str(p), keep=keep, log=log, window_ns=None if window is None else
+                            (int(round(window[0] * 1e9)),
+                             int(min(window[1] * 1e9, 2.0**62))))
         grids, metadata, mill_toml = content.grids, content.metadata, content.mill_toml
         if mill is None and mill_toml is not None:
             from .millfile import parse_mill
@@ -112,9 +131,75 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
             grids = [_select(g, mapped) for g in grids]
     else:
         grids = read_csv(str(p), keep=keep, log=log, chunk_samples=chunk_samples,
-                         siblings=siblings)
+                         siblings=siblings, window_s=window)
     rec = _assemble(p, grids, mill, log, wanted, metadata, mill_toml, warn)
     return align_devices(rec) if align else rec
+
+
+def recording_span(path: str | Path) -> float:
+    """Seconds from a recording's start to its last sample block (MCAP) or row (CSV).
+
+    MCAP: from the summary's message times (the file is streamed when it has none);
+    the last block's own samples extend beyond.  CSV: the first and last rows of the
+    file and its siblings.  Cheap: no sample is decoded.
+    """
+    p = Path(path)
+    log = IssueLog(str(p))
+    if p.suffix.lower() == ".mcap":
+        span = mcap_span_ns(str(p))
+        if span is None:
+            raise log.fatal("unreadable", "it holds no message")
+        return (span[1] - span[0]) / 1e9
+    from .csv_reader import csv_siblings
+
+    files = [p] + csv_siblings(p)
+    firsts = [first_time(f, log) for f in files]
+    return max(last_time(f, log) for f in files) - min(firsts)
+
+
+def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: float = 600.0,
+                   overlap_s: float = 0.0, **kwargs) -> Iterator[Recording]:
+    """Read a long recording window by window, with bounded memory.
+
+    Parameters
+    ----------
+    path : str or Path
+    mill : Mill, optional
+    window_s : float
+        Length of each window, s.
+    overlap_s : float
+        Each window also holds the last ``overlap_s`` seconds of the one before
+        (a transient cut by a window's edge is then whole in the next window).
+    **kwargs
+        Passed to :func:`read_recording` (``channels``, ``align``, ``warn``, ...).
+
+    Yields
+    ------
+    Recording
+        Windows ``[k * window_s - overlap_s, (k + 1) * window_s)`` s from the
+        recording's start (times stay relative to that start), until the end of the
+        recording.  A window inside the recording holding no sample at all (a long
+        dropout) is skipped with a :class:`~ident.errors.DataQualityWarning`.
+    """
+    if not (window_s > 0 and 0 <= overlap_s < window_s):
+        raise RecordingError(f"expected window_s > 0 and 0 <= overlap_s < window_s. Got "
+                             f"window_s={window_s!r}, overlap_s={overlap_s!r}", path=str(path))
+    last = recording_span(path)
+    k = 0
+    while k * window_s <= last + MAX_BLOCK_NS / 1e9:
+        lo = max(0.0, k * window_s - overlap_s)
+        try:
+            rec = read_recording(path, mill, t_start=lo, t_end=(k + 1) * window_s, **kwargs)
+        except RecordingError as exc:
+            if "empty window: " not in str(exc):
+                raise
+            if k * window_s > last:
+                return  # past the last block's start: the recording has ended
+            warnings.warn(f"{exc} (a dropout longer than the window); skipped",
+                          DataQualityWarning, stacklevel=2)
+        else:
+            yield rec
+        k += 1
 
 
 def _select(g: DeviceGrid, names: set[str]) -> DeviceGrid:
@@ -190,7 +275,8 @@ def _assemble(p: Path, grids: list[DeviceGrid], mill: Mill | None, log: IssueLog
                         f"{[c.name for c in mill.channels] if mill else []}")
     # units first (fatal errors come before the long scans) ------------------------------
     maps = [[_si_map(log, mill, c, u) for c, u in zip(g.channels, g.units)] for g in grids]
-    origin = min(g.start_ns for g in grids)
+    origin = min(g.start_ns if g.origin_ns is None else min(g.origin_ns, g.start_ns)
+                 for g in grids)
     frames: dict[str, pd.DataFrame] = {}
     rates: dict[str, float] = {}
     for g, m in zip(grids, maps):
