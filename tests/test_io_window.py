@@ -8,6 +8,7 @@ every format; memory must follow the window, not the file.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 
 import numpy as np
@@ -152,3 +153,21 @@ def test_long_dropout_window_is_skipped_with_a_warning(tmp_path, mill, synth):
         parts = list(iter_recording(p, mill, window_s=2.5, warn=False))
     starts = [round(float(q.frames["/t"].index[0]), 3) for q in parts]
     assert starts == [0.0, 2.5, 10.0, 12.5]
+
+
+@pytest.mark.parametrize("fmt", ["mcap-protobuf", "csv-seconds"])
+def test_segment_file_in_windows_finds_what_the_whole_read_finds(tmp_path, mill, synth, fmt):
+    from ident.segment import segment_file
+
+    p = _write(tmp_path, synth, fmt)
+    whole = segment_transients(read_recording(p, mill, warn=False), mill)
+    for window_s, overlap_s in ((6.0, 3.0), (9.0, 2.0), (100.0, 30.0)):
+        got = segment_file(p, mill, window_s=window_s, overlap_s=overlap_s)
+        assert got.windows == (1 if window_s == 100.0 else math.ceil(synth.duration_s / window_s))
+        assert [s.kind for s in got.segments] == [s.kind for s in whole]
+        np.testing.assert_allclose([s.t_step for s in got.segments], [s.t_step for s in whole],
+                                   atol=1e-3)
+        np.testing.assert_allclose([s.static_torque for s in got.segments],
+                                   [s.static_torque for s in whole], rtol=0.02)
+    with pytest.raises(RecordingError, match="overlap_s <= window_s / 2"):
+        segment_file(p, mill, window_s=4.0, overlap_s=3.0)

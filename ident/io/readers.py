@@ -198,6 +198,8 @@ def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: floa
             warnings.warn(f"{exc} (a dropout longer than the window); skipped",
                           DataQualityWarning, stacklevel=2)
         else:
+            if k and rec.duration < k * window_s:
+                return  # only the overlap with the window before: the recording has ended
             yield rec
         k += 1
 
