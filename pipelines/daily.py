@@ -47,6 +47,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--min-age-s", type=float, default=120.0,
                    help="leave files younger than this for the next run (still being copied "
                         "in); default 120 s")
+    p.add_argument("--no-fit", action="store_true",
+                   help="skip the gap fit (segments, TAF and the diagnosis only)")
+    p.add_argument("--no-diagnose", action="store_true", help="skip the wear diagnosis")
+    p.add_argument("--max-transients", type=int, metavar="N",
+                   help="fit at most N transients per recording")
     p.add_argument("--progress", action="store_true", help="progress bar (off for cron)")
     return p.parse_args(argv)
 
@@ -66,7 +71,11 @@ def run(argv: list[str] | None = None) -> int:
         quiet = [] if args.progress else ["--quiet"]
         opts = ["--min-age-s", str(args.min_age_s)] + \
             (["--workers", str(args.workers)] if args.workers is not None else []) + \
-            (["--scheduler", args.scheduler] if args.scheduler else [])
+            (["--scheduler", args.scheduler] if args.scheduler else []) + \
+            (["--no-fit"] if args.no_fit else []) + \
+            (["--no-diagnose"] if args.no_diagnose else []) + \
+            (["--max-transients", str(args.max_transients)]
+             if args.max_transients is not None else [])
         _log(f"campaign {args.incoming} -> {args.store}")
         code = ident_main(["campaign", args.incoming, "--mill", args.mill, "--store",
                            args.store, "--out", str(report.with_suffix(".campaign.json")),

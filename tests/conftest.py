@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -27,3 +28,26 @@ def mill_path(repo_root: Path) -> Path:
 def mill(mill_path: Path) -> Mill:
     """The shipped stand (seed Fig. 2), loaded once; it is immutable."""
     return load_mill(mill_path)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _hermetic_cache(tmp_path_factory):
+    """``$IDENT_CACHE`` in a fresh folder: no wear model a developer trained leaks into a test.
+
+    Compiled integrators (``jit/``, keyed by the hash of their source) are still shared
+    with the developer's cache, so that a local run does not compile them again.
+    """
+    old = os.environ.get("IDENT_CACHE")
+    user = Path(old) if old else Path.home() / ".cache" / "ident"
+    cache = tmp_path_factory.mktemp("ident-cache")
+    try:
+        (user / "jit").mkdir(parents=True, exist_ok=True)
+        (cache / "jit").symlink_to(user / "jit", target_is_directory=True)
+    except OSError:  # a read-only home: compile into the fresh folder
+        pass
+    os.environ["IDENT_CACHE"] = str(cache)
+    yield cache
+    if old is None:
+        os.environ.pop("IDENT_CACHE", None)
+    else:
+        os.environ["IDENT_CACHE"] = old

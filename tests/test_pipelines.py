@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from ident.store import load_results, make_sample_campaign, run_campaign
+from ident.store import Settings, load_results, make_sample_campaign, run_campaign
 
 
 @pytest.fixture(autouse=True)
@@ -45,7 +45,7 @@ def test_daily_is_incremental_and_locked(tmp_path, mill, mill_path, capsys):
     report = tmp_path / "www" / "report.html"
     args = ["--incoming", str(incoming), "--mill", str(mill_path), "--store", store,
             "--report", str(report), "--archive", str(tmp_path / "archive"), "--workers", "0",
-            "--min-age-s", "0"]
+            "--min-age-s", "0", "--no-fit"]  # the job's mechanics; test_demo fits for real
     assert daily.run(args) == 3  # the malformed file is stored as failed and reported
     assert report.exists() and len(list((tmp_path / "archive").glob("report-*.html"))) == 1
     # the next day: one new recording, only it is processed
@@ -68,7 +68,8 @@ def test_shipped_sample_campaign(repo_root, mill, tmp_path):
     folder = repo_root / "data" / "samples" / "hsm-f1"
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     assert size < 700 * 1024
-    s = run_campaign(folder, mill, f"sqlite:///{tmp_path}/s.db", workers=0, progress=False)
+    s = run_campaign(folder, mill, f"sqlite:///{tmp_path}/s.db", workers=0, progress=False,
+                     settings=Settings(fit=False))  # notebook 03 fits it for real
     assert (s.n_done, s.n_failed) == (4, 2)
     truth = json.loads((folder / "TRUTH.json").read_text())
     rec = load_results(f"sqlite:///{tmp_path}/s.db")["recordings"].set_index("file_name")
