@@ -129,6 +129,36 @@ def test_fit_recovers_the_gaps_from_a_wrong_start(mill, truth):
         assert out.state.p[eng.p_index(f"{e}.gap")] == pytest.approx(2e-3, rel=0.15)
 
 
+@pytest.mark.parametrize("i, bar", [(1, 0), (3, 1)])
+def test_ramp_grid_finds_a_release_the_segmenter_mistimed(mill, truth, i, bar):
+    """The segmenter times the measured torque, which lags the load, and a ringing torque
+    makes its ramp long; fits from the best rows of a grid over ramp duration and instant
+    land on the true ramp (seed scenario: raised cosine of ``fall_time``)."""
+    import dataclasses
+
+    _, wins = truth
+    b = BARS[bar]
+    w = dataclasses.replace(wins[i], t_step=b.t_step_release + 0.012)  # 12 ms late
+    eng = G.build_engine(mill, (), dt=w.dt, n_samples=w.n_samples)
+    p = eng.base_params()
+    row = G.initial_window_params(eng, [w])[0]
+
+    def fit_from(r):
+        return G.fit(eng, [w], G.Setup.baseline(eng), G.State(p=p, W=r[None, :]),
+                     free_shared=False, max_nfev=10)
+
+    true_row = row.copy()
+    true_row[2:4] = b.t_step_release, b.fall_time
+    reference = fit_from(true_row)  # what is left: ring-down of the bite, 1 ms RK4
+    row[3] = 3.0 * b.fall_time  # three times too long
+    starts = G.ramp_starts(eng, w, p, row, k=2)
+    assert len(starts) == 2 and starts[0][3] != starts[1][3]
+    best = min((fit_from(r) for r in starts), key=lambda o: o.cost)
+    assert best.nrmse < 1.02 * reference.nrmse < 0.04
+    assert best.state.W[0, 3] == pytest.approx(b.fall_time, rel=0.15)
+    assert best.state.W[0, 2] == pytest.approx(b.t_step_release, abs=2e-3)
+
+
 def test_engine_states_move_between_engines_by_parameter_name(mill):
     from ident.model.effects import CoulombFriction
 
@@ -184,16 +214,19 @@ def test_residual_analysis_locates_phase_frequency_load_and_roll_angle(mill):
 
 
 # ---- decision rule ------------------------------------------------------------------------------
-def _refit(key, imp, folds, bic=-100.0):
+def _refit(key, imp, folds, bic=-100.0, score=1.0):
     e, loc = key.split("@")
-    return Refit(effect=e, location=loc, score=1.0, params=(), nrmse=1 - imp, improvement=imp,
-                 fold_improvements=folds, train_nrmse=(), delta_bic=bic)
+    return Refit(effect=e, location=loc, score=score, params=(), nrmse=1 - imp,
+                 improvement=imp, fold_improvements=folds, train_nrmse=(), delta_bic=bic)
 
 
 @pytest.mark.parametrize("refits, named, why", [
     ([_refit("coulomb_friction@C46", 0.5, (0.4, 0.6)),
-      _refit("coulomb_friction@C57", 0.1, (0.1, 0.1))], "coulomb_friction@C46", "lower"),
-    ([_refit("coulomb_friction@C46", 0.1, (0.1, 0.1))], None, "< 20 %"),
+      _refit("coulomb_friction@C57", 0.1, (0.1, 0.1), score=0.5)], "coulomb_friction@C46",
+     "lower"),
+    ([_refit("spindle_imbalance@C57", 0.5, (0.4, 0.6)),
+      _refit("spindle_imbalance@C46", 0.1, (0.1, 0.1), score=0.95)], None, "cannot tell"),
+    ([_refit("coulomb_friction@C46", 0.1, (0.1, 0.1))], None, "< 30 %"),
     ([_refit("coulomb_friction@C46", 0.5, (0.9, 0.01))], None, "every fold"),
     ([_refit("coulomb_friction@C46", 0.5, (0.5, 0.5), bic=50.0)], None, "pay for"),
     ([_refit("coulomb_friction@C46", 0.5, (0.5, 0.5)),

@@ -21,7 +21,7 @@ import ident
 from ident.errors import IdentError
 from ident.model import effects as E
 from ident.model.dynamics import ModelOptions, build_driveline
-from ident.model.scenario import Bar, Scenario
+from ident.model.scenario import Bar, Scenario, nominal_torque
 from ident.model.simulate import simulate
 
 TWO_MASS = """
@@ -261,3 +261,22 @@ def test_sensor_filter_is_a_causal_low_pass_starting_at_rest():
     np.testing.assert_allclose(y[:100], 5.0)  # at rest on the first value, nothing before the step
     with pytest.raises(IdentError, match="cutoff_hz must lie in"):
         E.SensorFilter("C46", cutoff_hz=1500.0).apply(step, rate)
+
+
+def test_knee_guesses_spread_over_the_deflections_the_load_reaches(mill):
+    """Guesses come from the data's load (not from any generator's ranges): fractions of
+    the element's static deflection under the largest torque, up to that deflection."""
+    from ident.segment.loadshare import load_fractions
+
+    for cls in (E.SofteningStiffness, E.HardeningStiffness):
+        eff = cls("C46")
+        t = 2.0e5
+        d = load_fractions(mill)["C46"] * t / mill.element("C46").k
+        got = eff.knee_guesses(mill, torque=t)
+        assert got == pytest.approx(tuple(f * d for f in eff.KNEE_FRACTIONS))
+        assert max(got) == pytest.approx(d) and min(got) < 0.1 * d
+        assert list(got) == sorted(got)
+        assert eff.knee_guesses(mill, torque=2 * t) == pytest.approx(tuple(2 * g for g in got))
+        # without a torque: the mill's nominal one
+        assert eff.knee_guesses(mill) == pytest.approx(
+            tuple(g * nominal_torque(mill) / t for g in got))

@@ -34,6 +34,13 @@ Parameters
   swinging spindle gap), and where its elements float in their gaps is not
   observable before the bite.
 
+The per-window parameters make local minima: the ramp's duration and instant
+and the gap positions set when flanks meet, so the timing of every impact.
+The segmenter times the step in the measured torque, which lags the load, and
+its 10-90 % rise of a ringing torque can be far off, so fits start from the
+best rows of a grid over ``rise``, ``t_step`` and ``frac``
+(:func:`ramp_starts`) rather than from the segmenter's estimates alone.
+
 Initial states are rest states: loaded elements in contact, found by a
 damped Newton solve of the model's own statics (knees, strip loop, gap shifts
 and the lag state included); unloaded elements placed by ``frac``.  With a
@@ -47,7 +54,6 @@ bar with the roll angle at bite").
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -59,11 +65,11 @@ from ..errors import FitError
 from ..model.dynamics import Driveline, Family, ModelOptions, build_driveline
 from ..model.effects import Gated
 from ..model.integrate import Stepper, make_stepper, stage_times
-from ..model.linear import incidence
 from .windows import Window
 
 __all__ = ["WINDOW_PARAMS", "Engine", "Setup", "State", "Layout", "FitOutcome", "build_engine",
-           "simulate_windows", "fit", "fit_nuisance", "nrmse", "channel_scales"]
+           "simulate_windows", "fit", "fit_nuisance", "nrmse", "channel_scales", "scan_frac",
+           "scan_ramp", "ramp_starts", "RAMP_GRID_S", "SHIFT_GRID_S"]
 
 #: Per-window nuisance parameters, in order.
 WINDOW_PARAMS = ("L0", "L1", "t_step", "rise", "frac", "slope")
@@ -108,14 +114,35 @@ class Engine:
     _cache: dict = field(default_factory=dict, repr=False)
 
     def candidate_index(self, key: str) -> int:
-        """Index of the candidate ``name@location``."""
-        for i, c in enumerate(self.candidates):
-            if f"{c.name}@{c.location}" == key:
-                return i
+        """Index of the candidate ``name@location``.
+
+        Softening and hardening share one term (stiffness ``k_ratio * k`` beyond a
+        knee), so either name finds an engine holding the other at that element.
+        """
+        keys = [f"{c.name}@{c.location}" for c in self.candidates]
+        if key in keys:
+            return keys.index(key)
+        name, loc = key.split("@", 1)
+        twin = {"softening_stiffness": "hardening_stiffness",
+                "hardening_stiffness": "softening_stiffness"}.get(name)
+        if twin is not None and f"{twin}@{loc}" in keys:
+            return keys.index(f"{twin}@{loc}")
         raise KeyError(key)
 
+    def candidate_key(self, key: str) -> str:
+        """The engine's own key for candidate ``key`` (see :meth:`candidate_index`)."""
+        return self.candidates[self.candidate_index(key)].key
+
     def p_index(self, name: str) -> int:
-        return self.driveline.param_index(name)
+        """Index of the driveline parameter ``name`` (as ``Driveline.param_index``, cached)."""
+        idx = self._cache.get("p_index")
+        if idx is None:
+            idx = self._cache["p_index"] = {nm: i for i, nm in
+                                            enumerate(self.driveline.param_names)}
+        try:
+            return idx[name]
+        except KeyError:
+            return self.driveline.param_index(name)  # raises the driveline's own error
 
     def base_params(self) -> np.ndarray:
         """Mill-file gaps (fit convention), every candidate gated off at its neutral values."""
@@ -267,12 +294,14 @@ class Setup:
             return Setup(shared=base.shared + (i,), lower=np.append(base.lower, 0.0),
                          upper=np.append(base.upper, 0.03), scale=np.append(base.scale, 1e-3),
                          active=None)
+        from ..model.effects import make_effect
+
         ci = engine.candidate_index(key)
-        c = engine.candidates[ci]
+        ekey = engine.candidates[ci].key
         idx, lo, hi, sc = list(base.shared), list(base.lower), list(base.upper), list(base.scale)
-        for s in c.specs(engine.mill):
+        for s in make_effect(name, loc).specs(engine.mill):
             if s.free:
-                idx.append(engine.p_index(f"{key}.{s.name}"))
+                idx.append(engine.p_index(f"{ekey}.{s.name}"))
                 lo.append(s.lower)
                 hi.append(s.upper)
                 sc.append(s.scale)
@@ -311,31 +340,44 @@ def starts_idle(w: Window) -> bool:
         w.level_after - w.level_before)
 
 
+def _layout(engine: Engine) -> dict:
+    """Per-engine constants of :func:`initial_state` (computed once)."""
+    got = engine._cache.get("layout")
+    if got is None:
+        mill = engine.mill
+        n = len(mill.masses)
+        im = mill.mass_index(mill.motor.mass)
+        ne = len(mill.elements)
+        # angles are linear in the deflections (spanning tree, motor angle 0)
+        M = np.stack([_angles(mill, np.eye(ne)[j], im) for j in range(ne)], axis=1)
+        got = engine._cache["layout"] = {
+            "n": n, "im": im, "angles": M, "k": np.array([e.k for e in mill.elements]),
+            "gap_index": _gap_index(engine), "shares": _shares(engine)}
+    return got
+
+
 def initial_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> np.ndarray:
     """Rest state at the window's start under the load ``L0`` (see the module docstring)."""
     mill = engine.mill
     drv = engine.driveline
-    n = len(mill.masses)
-    im = mill.mass_index(mill.motor.mass)
-    L0, L1 = float(wp[0]), float(wp[1])
+    lay = _layout(engine)
+    n, im = lay["n"], lay["im"]
+    L0 = float(wp[0])
     t0 = float(w.t[0])
-    shares = _shares(engine)
-    tau = shares * L0
+    tau = lay["shares"] * L0
     idle = starts_idle(w)
     frac = float(wp[4])
-    delta = np.empty(len(mill.elements))
-    for j, e in enumerate(mill.elements):
-        gap = p[engine.p_index(f"{e.id}.gap")]
-        if idle or tau[j] == 0.0:
-            delta[j] = -frac * gap
-        elif tau[j] > 0:
-            delta[j] = tau[j] / e.k
-        else:
-            delta[j] = -gap + tau[j] / e.k
+    gaps = p[lay["gap_index"]]
+    k_el = lay["k"]
+    if idle:
+        delta = -frac * gaps
+    else:
+        delta = np.where(tau > 0, tau / k_el, -gaps + tau / k_el)
+        delta = np.where(tau == 0.0, -frac * gaps, delta)
     z = L0 / mill.motor.ki if mill.motor.ki else 0.0
     # absolute angles: the speed loop's integral z = -(motor angle) for a recording that
     # started at rest (roll-angle effects see it; a constant offset goes into their phase)
-    theta = _angles(mill, delta, im) - z
+    theta = lay["angles"] @ delta - z
     x = drv.x_idle.copy()
     x[:n] = theta
     x[n:2 * n] = 0.0
@@ -346,7 +388,14 @@ def initial_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> n
         x[k:k + len(st)] = st
         k += len(st)
     if _needs_statics(engine, p) and not idle:
-        x = _refine_statics(engine, x, p, L0, t0, im)
+        cache = engine._cache.setdefault("statics", {})
+        key = (p.tobytes(), x.tobytes(), L0, t0)
+        got = cache.get(key)
+        if got is None:
+            if len(cache) > 256:
+                cache.clear()
+            got = cache[key] = _refine_statics(engine, x, p, L0, t0, im)
+        x = got.copy()
     off = wp[len(WINDOW_PARAMS):]
     if off.size:
         x[:n] += off[:n]
@@ -397,6 +446,14 @@ def _refine_statics(engine: Engine, x: np.ndarray, p: np.ndarray, L0: float, t0:
     out[2 * n] = v[n - 1]
     out[2 * n + 1:] = v[n:]
     return out
+
+
+def _gap_index(engine: Engine) -> np.ndarray:
+    got = engine._cache.get("gap_index")
+    if got is None:
+        got = engine._cache["gap_index"] = np.array(
+            [engine.p_index(f"{e.id}.gap") for e in engine.mill.elements])
+    return got
 
 
 def _shares(engine: Engine) -> np.ndarray:
@@ -461,7 +518,7 @@ def _run(engine: Engine, x0: np.ndarray, U: np.ndarray, p: np.ndarray, t0: float
 
 def _history_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> np.ndarray:
     """State at the window's start, run from the loaded rest before the previous release."""
-    key = ("history", w.label, float(w.t[0]), p.tobytes(), float(wp[0]))
+    key = ("history", w.label, float(w.t[0]), p.tobytes())
     got = engine._cache.get(key)
     if got is not None:
         return got
@@ -479,7 +536,8 @@ def _history_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> 
     T = stage_times(st, n_int + 1, t_pre)
     U = _load(fake, wr, T)
     idle = T >= t_rel + rise
-    U[idle] = wp[0]  # the idle level of the bite window itself
+    U[idle] = after  # the segmenter's idle level: the long idle run must not follow the
+    # bite's fitted level (a rattle is sensitive, and the history would move with it)
     X, _ = _run(engine, x, U, p, t_pre)
     x0 = X[:, -1]
     if len(engine._cache) > 64:
@@ -641,8 +699,7 @@ def _window_free(engine: Engine, w: Window, free_slope: bool, free_x0: bool,
     return free
 
 
-def initial_window_params(engine: Engine, windows: Sequence[Window], *,
-                          rise: float = 0.02) -> np.ndarray:
+def initial_window_params(engine: Engine, windows: Sequence[Window]) -> np.ndarray:
     """Load parameters from the segmenter's estimates, no state offsets.
 
     Returns
@@ -652,7 +709,7 @@ def initial_window_params(engine: Engine, windows: Sequence[Window], *,
     n = len(engine.mill.masses)
     W = np.zeros((len(windows), len(WINDOW_PARAMS) + 2 * n))
     for i, w in enumerate(windows):
-        W[i, :6] = [w.level_before, w.level_after, w.t_step, rise,
+        W[i, :6] = [w.level_before, w.level_after, w.t_step, w.rise,
                     1.0 if w.kind == "bite" else 0.0, 0.0]
     return W
 
@@ -787,7 +844,7 @@ def fit(engine: Engine, windows: Sequence[Window], setup: Setup, start: State, *
                 Jm[i * n_per:(i + 1) * n_per, c] = (r - r0[i * n_per:(i + 1) * n_per]) / steps[c]
         return Jm
 
-    if z0.size:
+    if z0.size and max_nfev > 0:
         z, nfev, success, J = _solve(fun, jac, z0, lower, upper, max_iter=max_nfev,
                                      ftol=ftol)
         if not keep_jac:
@@ -831,6 +888,87 @@ def scan_frac(engine: Engine, windows: Sequence[Window], state: State, *,
             if best is None or c < best[0]:
                 best = (c, v)
         W[i, 4] = best[1]
+    return State(p=state.p, W=W)
+
+
+#: Load-ramp durations :func:`ramp_starts` tries, s (about geometric, 4-60 ms: real mills
+#: ramp over 10-40 ms; the segmenter's 10-90 % estimate on a ringing torque can be far off).
+RAMP_GRID_S = (0.004, 0.007, 0.012, 0.02, 0.035, 0.06)
+#: Shifts of the load's half-height instant from the segmenter's, s: the segmenter times
+#: the measured torque, which lags the load by up to a quarter of the lowest period.
+SHIFT_GRID_S = (-0.024, -0.016, -0.008, 0.0, 0.008)
+
+
+def ramp_starts(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray, *, k: int = 2,
+                rises: Sequence[float] = RAMP_GRID_S, shifts: Sequence[float] = SHIFT_GRID_S,
+                fracs: Sequence[float] = (0.0, 0.5, 1.0),
+                scales: np.ndarray | None = None) -> list[np.ndarray]:
+    """The ``k`` best window rows over a grid of ramp durations and gap positions.
+
+    The ramp's duration sets when the flanks meet and so the timing of every
+    impact: the cost has a local minimum per impact pattern, and a gradient
+    fit from a wrong duration stays in the wrong one.  So does one from a wrong
+    instant, and the segmenter's ``t_step`` is that of the measured torque,
+    which lags the load.  ``wp`` itself is among the rows tried; bites from
+    idle also try gap positions ``frac`` (0 drive flank, 1 back flank) unless
+    their start is simulated (``needs_history``).
+
+    Parameters
+    ----------
+    engine : Engine
+    w : Window
+    p : ndarray
+        Driveline parameters (gates applied).
+    wp : ndarray
+        The window's row (:data:`WINDOW_PARAMS` and offsets).
+    k : int
+        Rows returned, best first, each with another ramp duration.
+    rises : sequence of float
+        Ramp durations tried, s.
+    shifts : sequence of float
+        Shifts of ``t_step`` tried, s (within the fit's bounds, 50 ms).
+    fracs : sequence of float
+        Gap positions tried.
+    scales : ndarray, optional
+        Channel scales, N*m (default: of ``w``).
+
+    Returns
+    -------
+    list of ndarray
+    """
+    if scales is None:
+        scales = channel_scales(engine, [w])
+    i_rise, i_frac = WINDOW_PARAMS.index("rise"), WINDOW_PARAMS.index("frac")
+    y = w.columns(engine.measured)
+    scan_f = starts_idle(w) and not (w.history is not None and needs_history(engine, p))
+    fs = tuple(dict.fromkeys((float(wp[i_frac]),) + (tuple(fracs) if scan_f else ())))
+    i_t = WINDOW_PARAMS.index("t_step")
+    rs = tuple(dict.fromkeys((float(wp[i_rise]),) + tuple(rises)))
+    ts = tuple(dict.fromkeys(
+        (float(wp[i_t]),) + tuple(w.t_step + d for d in shifts if abs(d) < 0.05)))
+    best: dict[float, tuple[float, np.ndarray]] = {}
+    for r in rs:
+        for t in ts:
+            for f in fs:
+                row = np.array(wp, dtype=float)
+                row[i_rise], row[i_t], row[i_frac] = r, t, f
+                c = float(np.sum(((simulate_window(engine, w, p, row) - y) / scales) ** 2))
+                if r not in best or c < best[r][0]:
+                    best[r] = (c, row)
+    return [row for _, row in sorted(best.values(), key=lambda cr: cr[0])[:k]]
+
+
+def scan_ramp(engine: Engine, windows: Sequence[Window], state: State, *,
+              rises: Sequence[float] = RAMP_GRID_S, shifts: Sequence[float] = SHIFT_GRID_S,
+              fracs: Sequence[float] = (0.0, 0.5, 1.0),
+              scales: np.ndarray | None = None) -> State:
+    """Each window's row at the best of :func:`ramp_starts` (the cost never rises)."""
+    if scales is None:
+        scales = channel_scales(engine, windows)
+    W = state.W.copy()
+    for i, w in enumerate(windows):
+        W[i] = ramp_starts(engine, w, state.p, W[i], k=1, rises=rises, shifts=shifts,
+                           fracs=fracs, scales=scales)[0]
     return State(p=state.p, W=W)
 
 

@@ -13,8 +13,18 @@ multiplier (score) test::
     score = || P(J0-perp C) r ||^2 / sigma^2,   sigma^2 = ||r||^2 / (n - p)
 
 with sign constraints where physics sets them (softening lowers, hardening
-raises the stiffness; friction, lag and gaps are positive).  The same
-projection gives each candidate's starting parameters for the refit.
+raises the stiffness; friction, lag and gaps are positive).  Knee stiffness
+is probed both ways (``k_ratio`` 0.5 and 2) at knees spread over the whole
+range of static deflections the windows reach (``knee_guesses`` of
+``ident.model.effects``, scaled by :func:`peak_torque`): a large hardening is
+far from a linear extension of a softening.  The same projection gives each
+candidate's starting parameters for the refit.
+
+A linearisation misses an effect the baseline has bent itself around (a
+strong hardening, a gap the neighbours' gaps imitate), so the leading
+candidates are also tried on a coarse grid of their parameters
+(:func:`start_grid`, forward simulations only): :func:`rescore_on_grid`
+keeps the larger of the two residual reductions.
 
 Residuals are serially correlated, so the score is a ranking, not a p-value:
 the decision is made on held-out windows (``ident.discrepancy.workflow``).
@@ -29,26 +39,25 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..description import Mill
-from ..model.effects import (CoulombFriction, HardeningStiffness, SofteningStiffness,
-                             SpindleImbalance, StripCoupling, TorqueLoopLag, candidate_locations,
-                             typical_deflection)
+from ..model.effects import (CoulombFriction, SofteningStiffness, SpindleImbalance,
+                             StripCoupling, TorqueLoopLag, candidate_locations, make_effect)
 from ..model.scenario import nominal_torque
-from .engine import Engine, FitOutcome, Setup, State, simulate_window
+from .engine import Engine, FitOutcome, State, simulate_window
 from .windows import Window
 
-__all__ = ["Probe", "CandidateScore", "model_candidates", "score_candidates", "start_grid",
-           "start_state"]
+__all__ = ["Probe", "CandidateScore", "model_candidates", "score_candidates", "rescore_on_grid",
+           "start_grid", "start_state", "peak_torque"]
 
 
 def model_candidates(mill: Mill) -> tuple:
-    """Every gated effect the engine needs, one per (effect, location); no backlash.
+    """Every gated effect the scoring engine needs; no backlash.
 
-    Backlash candidates free an element's own gap (see :class:`~.engine.Setup`).
+    Backlash candidates free an element's own gap (see :class:`~.engine.Setup`);
+    hardening shares the softening term (``k_ratio`` above 1).
     """
     out: list[Any] = []
     for e in candidate_locations(mill, "softening_stiffness"):
-        out.append(SofteningStiffness(e))
-        out.append(HardeningStiffness(e))
+        out.append(SofteningStiffness(e))  # hardening is the same term with k_ratio > 1
     for e in candidate_locations(mill, "coulomb_friction"):
         out.append(CoulombFriction(e))
     for e in candidate_locations(mill, "spindle_imbalance"):
@@ -112,15 +121,22 @@ class CandidateScore:
         return f"{self.effect}@{self.location}"
 
 
-def _probes(engine: Engine) -> dict[str, list[list[Probe]]]:
+def peak_torque(windows: Sequence[Window]) -> float:
+    """Largest static rolling torque of the windows, N*m reduced (knee guesses scale with it)."""
+    return max(max(abs(w.level_before), abs(w.level_after)) for w in windows)
+
+
+def _probes(engine: Engine, torque: float | None = None) -> dict[str, list[list[Probe]]]:
     """Per candidate family key, alternative probe sets (each a list of columns)."""
     mill = engine.mill
     out: dict[str, list[list[Probe]]] = {}
     T = nominal_torque(mill)
     for c in engine.candidates:
         k = c.key
-        if c.name == "softening_stiffness":
-            out[k] = [[Probe(k, (("knee", kn), ("k_ratio", 0.5)))] for kn in c.knee_guesses(mill)]
+        if c.name in ("softening_stiffness", "hardening_stiffness"):
+            # a large hardening is far from a linear extension of a softening: both ways
+            out[k] = [[Probe(k, (("knee", kn), ("k_ratio", r)))]
+                      for kn in c.knee_guesses(mill, torque=torque) for r in (0.5, 2.0)]
         elif c.name == "coulomb_friction":
             out[k] = [[Probe(k, (("force", 0.01 * T), ("v_smooth", c.v_smooth)))]]
         elif c.name == "spindle_imbalance":
@@ -180,7 +196,11 @@ def score_candidates(engine: Engine, windows: Sequence[Window], baseline: FitOut
     r0 = baseline.residuals
     n = r0.size
     J0 = baseline.jac if baseline.jac is not None else np.zeros((n, 0))
-    Q, _ = np.linalg.qr(J0) if J0.shape[1] else (np.zeros((n, 0)), None)
+    if J0.shape[1]:
+        Q, R = np.linalg.qr(J0)
+        R_pinv = np.linalg.pinv(R)  # J0's least-squares solutions: R_pinv @ Q.T @ b
+    else:
+        Q, R_pinv = np.zeros((n, 0)), np.zeros((0, 0))
     rp = r0 - Q @ (Q.T @ r0)
     ssr = float(r0 @ r0)
     sigma2 = ssr / max(n - J0.shape[1], 1)
@@ -188,7 +208,7 @@ def score_candidates(engine: Engine, windows: Sequence[Window], baseline: FitOut
     state = baseline.state
     mill = engine.mill
     results: list[CandidateScore] = []
-    for key, alternatives in _probes(engine).items():
+    for key, alternatives in _probes(engine, peak_torque(windows)).items():
         name, loc = key.split("@", 1)
         best: dict[str, tuple[float, dict]] = {}
         for probes in alternatives:
@@ -201,7 +221,7 @@ def score_candidates(engine: Engine, windows: Sequence[Window], baseline: FitOut
                 if eff not in best or g > best[eff][0]:
                     step = None
                     if start is not None and J0.shape[1]:
-                        step, *_ = np.linalg.lstsq(J0, -(r0 + C @ beta), rcond=None)
+                        step = -R_pinv @ (Q.T @ (r0 + C @ beta))
                     best[eff] = (g, start or {}, step)
         for eff, (g, start, step) in best.items():
             results.append(CandidateScore(effect=eff, location=loc, score=g / sigma2,
@@ -216,13 +236,13 @@ def _interpret(mill: Mill, name: str, loc: str, probes: list[Probe], beta: np.nd
     """Effect names and refit starting values a projection supports (None: wrong sign)."""
     b = [float(v) for v in beta]
     pr = dict(probes[0].params)
-    if name == "softening_stiffness":
-        # the probe adds gate * (0.5 - 1) * k beyond the knee: beta > 0 softens
-        ratio = 1.0 - 0.5 * b[0]
+    if name in ("softening_stiffness", "hardening_stiffness"):
+        # the probe adds gate * (k_ratio - 1) * k beyond the knee
+        ratio = 1.0 + b[0] * (pr["k_ratio"] - 1.0)
         soft = {"knee": pr["knee"], "k_ratio": float(np.clip(ratio, 0.1, 0.95))}
         hard = {"knee": pr["knee"], "k_ratio": float(np.clip(ratio, 1.05, 6.0))}
-        return [("softening_stiffness", soft if b[0] > 0 else None),
-                ("hardening_stiffness", hard if b[0] < 0 else None)]
+        return [("softening_stiffness", soft if ratio < 1.0 else None),
+                ("hardening_stiffness", hard if ratio > 1.0 else None)]
     if name == "coulomb_friction":
         f = b[0] * pr["force"]
         return [(name, {"force": f} if b[0] > 0 else None)]
@@ -251,18 +271,18 @@ def start_state(engine: Engine, state: State, cand: CandidateScore) -> State:
     if cand.effect == "backlash":
         p[engine.p_index(f"{cand.location}.gap")] = cand.start.get("gap", 1e-3)
         return State(p=p, W=state.W.copy())
-    c = engine.candidates[engine.candidate_index(key)]
-    specs = {s.name: s for s in c.specs(engine.mill)}
+    ekey = engine.candidate_key(key)
+    specs = {s.name: s for s in make_effect(cand.effect, cand.location).specs(engine.mill)}
     for name, v in cand.start.items():
         s = specs.get(name)
         if s is not None:
             v = float(np.clip(v, s.lower, s.upper))
-        p[engine.p_index(f"{key}.{name}")] = v
+        p[engine.p_index(f"{ekey}.{name}")] = v
     return State(p=p, W=state.W.copy())
 
 
-def start_grid(mill: Mill, cand: CandidateScore, *, fine: bool = False
-               ) -> list[dict[str, float]]:
+def start_grid(mill: Mill, cand: CandidateScore, *, fine: bool = False,
+               torque: float | None = None) -> list[dict[str, float]]:
     """Starting points worth a look for a candidate's refit (local parameter names).
 
     A coarse grid over the parameters that make the fit non-convex (imbalance
@@ -270,14 +290,20 @@ def start_grid(mill: Mill, cand: CandidateScore, *, fine: bool = False
     magnitudes, plus the signature projection's own estimate.  The refit starts
     from the grid point with the lowest training cost (the baseline included),
     so it never starts worse than the mill file's model.  ``fine`` refines the
-    gap sizes of backlash (whose basins are narrow).
+    gap sizes of backlash (whose basins are narrow) and the stiffness ratios of
+    knees; ``torque`` (N*m reduced, the
+    largest static rolling torque in the data) places the knees.
     """
     name, loc = cand.effect, cand.location
     grid: list[dict[str, float]] = [dict(cand.start)] if cand.start else []
     if name in ("softening_stiffness", "hardening_stiffness"):
-        d = typical_deflection(mill, loc)
-        ratios = (0.4, 0.7) if name == "softening_stiffness" else (1.6, 2.8)
-        grid += [{"knee": f * d, "k_ratio": r} for f in (0.15, 0.3, 0.5, 0.8) for r in ratios]
+        # the loaded stiffness makes a narrow valley in k_ratio: finer when asked
+        knees = make_effect(name, loc).knee_guesses(mill, torque=torque)
+        if name == "softening_stiffness":
+            ratios = (0.15, 0.25, 0.35, 0.45, 0.55, 0.7, 0.85) if fine else (0.3, 0.6, 0.85)
+        else:
+            ratios = (1.2, 1.5, 1.9, 2.4, 3.0, 4.0, 5.5) if fine else (1.3, 2.0, 3.5)
+        grid += [{"knee": kn, "k_ratio": r} for kn in knees for r in ratios]
     elif name == "coulomb_friction":
         T = nominal_torque(mill)
         grid += [{"force": f * T} for f in (0.004, 0.01, 0.02, 0.04)]
@@ -295,3 +321,54 @@ def start_grid(mill: Mill, cand: CandidateScore, *, fine: bool = False
                 else (5e-4, 1e-3, 2e-3, 3.5e-3, 6e-3))
         grid += [{"gap": g} for g in gaps]
     return grid
+
+
+def rescore_on_grid(engine: Engine, windows: Sequence[Window], baseline: FitOutcome,
+                    scores: Sequence[CandidateScore], *, scales: np.ndarray,
+                    top: int = 10) -> tuple[CandidateScore, ...]:
+    """Scores of the ``top`` candidates raised to their best grid point's cost reduction.
+
+    Parameters
+    ----------
+    engine : Engine
+        With every candidate (as :func:`score_candidates`).
+    windows, baseline, scales :
+        As :func:`score_candidates`.
+    scores : sequence of CandidateScore
+        From :func:`score_candidates` (best first).
+    top : int
+        Candidates tried.
+
+    Returns
+    -------
+    tuple of CandidateScore
+        Best first; a candidate whose grid point beats its linear projection
+        starts its refit from that point.
+    """
+    r0 = baseline.residuals
+    n = r0.size
+    p_free = baseline.jac.shape[1] if baseline.jac is not None else 0
+    sigma2 = float(r0 @ r0) / max(n - p_free, 1)
+    ssr0 = float(r0 @ r0)
+    ys = [w.columns(engine.measured) for w in windows]
+    out = list(scores)
+    for k, c in enumerate(scores[:top]):
+        best_gain, best_point = -math.inf, None
+        for point in start_grid(engine.mill, c, torque=peak_torque(windows)):
+            st = start_state(engine, baseline.state, CandidateScore(
+                effect=c.effect, location=c.location, score=0.0, fraction=0.0, start=point))
+            p = st.p.copy()
+            if c.effect != "backlash":
+                p[engine.p_index(f"{engine.candidate_key(c.key)}.gate")] = 1.0
+            ssr = 0.0
+            for i, w in enumerate(windows):
+                ssr += float(np.sum(((simulate_window(engine, w, p, st.W[i]) - ys[i])
+                                     / scales) ** 2))
+            if ssr0 - ssr > best_gain:
+                best_gain, best_point = ssr0 - ssr, point
+        if best_point is not None and best_gain / sigma2 > c.score:
+            out[k] = CandidateScore(effect=c.effect, location=c.location,
+                                    score=best_gain / sigma2, fraction=best_gain / ssr0,
+                                    start=dict(best_point), step=None)
+    out.sort(key=lambda c: -c.score)
+    return tuple(out)

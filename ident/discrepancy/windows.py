@@ -44,6 +44,8 @@ class Window:
     bar : int
         Index of the bar (a bite and the release that follows share it).
     label : str
+    rise : float
+        Duration of the load ramp, s (segmenter's estimate; a start for fits).
     history : tuple of float or None
         For a bite after a release: ``(t_step, level_before, level_after, rise)`` of
         that release (s, N*m, N*m, s; segmenter's estimates), so that a model can
@@ -59,6 +61,7 @@ class Window:
     level_after: float
     bar: int
     label: str = ""
+    rise: float = 0.02
     history: tuple | None = None
 
     def __post_init__(self) -> None:
@@ -104,7 +107,7 @@ class Window:
         return Window(t=self.t[:n], elements=self.elements, y=self.y[:n], t_step=self.t_step,
                       kind=self.kind, level_before=self.level_before,
                       level_after=self.level_after, bar=self.bar, label=self.label,
-                      history=self.history)
+                      rise=self.rise, history=self.history)
 
 
 def _element_frame(frame: pd.DataFrame, mill: Mill) -> pd.DataFrame:
@@ -200,16 +203,22 @@ def windows_from_frame(frame: pd.DataFrame, mill: Mill, segments: Iterable[Any],
         else:
             before, after = s.static_torque, s.static_torque + s.step
         history = None
+        # the segmenter's 10-90 % time; a raised cosine of duration T rises 10-90 % in 0.59 T
+        rise_s = getattr(s, "rise_s", math.nan)
+        rise = (min(max(rise_s / 0.59, 0.004), 0.1) if math.isfinite(rise_s) and rise_s > 0
+                else 0.02)
         prev = segs[i - 1] if i > 0 else None
         if (s.kind == "bite" and prev is not None and prev.kind == "release"
                 and math.isfinite(prev.static_torque) and math.isfinite(prev.step)):
-            rise = getattr(prev, "rise_s", math.nan)
-            rise = rise / 0.59 if math.isfinite(rise) and rise > 0 else 0.02
+            prev_rise = getattr(prev, "rise_s", math.nan)
+            prev_rise = prev_rise / 0.59 if math.isfinite(prev_rise) and prev_rise > 0 else 0.02
             history = (float(prev.t_step), float(prev.static_torque),
-                       float(prev.static_torque + prev.step), float(min(max(rise, 0.004), 0.1)))
+                       float(prev.static_torque + prev.step),
+                       float(min(max(prev_rise, 0.004), 0.1)))
         out.append(Window(t=t_all[m], elements=tuple(frame.columns), y=y, t_step=float(s.t_step),
                           kind=s.kind, level_before=float(before), level_after=float(after),
-                          bar=bar, label=f"{s.kind}@{s.t_step:.2f}s", history=history))
+                          bar=bar, label=f"{s.kind}@{s.t_step:.2f}s", rise=rise,
+                          history=history))
     if not out:
         raise FitError(f"no usable transient window ({len(segs)} steps found); each needs "
                        f"{min_s} s without missing samples before the next step.")

@@ -13,11 +13,16 @@
    (:mod:`.signatures`, scores summed over the folds).
 4. **Refit** of the ``n_refit`` leading candidates: each added to the model as
    a term with its own parameters (``ident.model.effects``), refitted on each
-   fold's bars, its held-out nrmse measured on the other bars.
+   fold's bars from two starts (the baseline's optimum moved by the signature's
+   step or the best grid point, and afresh from the mill file's gaps, because
+   the baseline bends its gaps around what it misses), each with the loads
+   refitted first; its held-out nrmse is measured on the other bars, the
+   loads of every window fitted alike for every model.
 5. **Decision** (:class:`DecisionRule`): the best candidate is named only when
    it lowers the held-out nrmse by at least ``min_improvement`` overall and by
-   ``min_fold_improvement`` on every fold, and beats every candidate of another
-   name or location by ``min_margin``; otherwise the answer is ``null`` with
+   ``min_fold_improvement`` on every fold, beats every candidate of another
+   name or location by ``min_margin`` and leads the same effect elsewhere in
+   signature score (``min_location_lead``); otherwise the answer is ``null`` with
    ``explained: false`` ("a wrong name is worse than none", effects.md).  The
    held-out measure is itself the penalty for added parameters (a candidate
    that only fits noise does worse on unseen bars); the training BIC is
@@ -41,10 +46,11 @@ from ..description import Mill
 from ..errors import FitError
 from ..model.effects import make_effect
 from .engine import (Engine, FitOutcome, Setup, State, build_engine, channel_scales, fit,
-                     initial_window_params, nrmse, scan_frac, simulate_window)
+                     initial_window_params, nrmse, ramp_starts, scan_frac,
+                     simulate_window)
 from .residuals import ResidualReport, analyse_residuals
-from .signatures import (CandidateScore, model_candidates, score_candidates, start_grid,
-                         start_state)
+from .signatures import (CandidateScore, model_candidates, peak_torque, rescore_on_grid,
+                         score_candidates, start_grid, start_state)
 from .windows import Window, as_windows, windows_from_recording
 
 __all__ = ["DecisionRule", "Refit", "DiscrepancyResult", "discrepancy"]
@@ -55,8 +61,9 @@ class DecisionRule:
     """When a candidate is named (thresholds on held-out nrmse).
 
     Calibrated on controls with nothing missing and with a sensor-chain filter
-    (``benchmarks/bench_discrepancy.py``): the largest improvement any
-    candidate reached there stays well below ``min_improvement``.
+    (``benchmarks/bench_discrepancy.py``): there the best candidate lowered the
+    held-out nrmse by at most a few per cent, well below ``min_improvement``,
+    which also is the issue's bar for a named effect (30 %).
 
     Attributes
     ----------
@@ -70,12 +77,19 @@ class DecisionRule:
     max_bic : float
         Largest training BIC difference (candidate minus baseline, summed over
         folds) still accepted.
+    min_location_lead : float
+        Least relative lead in signature score over the same effect at another
+        refitted location.  Where two locations match the residuals alike (the
+        two spindles of a symmetric stand), a refit on a few bars can land the
+        effect at the wrong one and still generalise (the bench's one wrong name
+        was such an imbalance), so the location is not named.
     """
 
-    min_improvement: float = 0.2
-    min_fold_improvement: float = 0.08
-    min_margin: float = 0.03
+    min_improvement: float = 0.3
+    min_fold_improvement: float = 0.15
+    min_margin: float = 0.05
     max_bic: float = 0.0
+    min_location_lead: float = 0.1
 
     def decide(self, refits: Sequence["Refit"]) -> tuple[str | None, str | None, bool, str]:
         """``(effect, location, explained, reason)`` for refits sorted best first."""
@@ -98,6 +112,12 @@ class DecisionRule:
                 return None, None, False, (f"{best.key} and {other.key} explain the "
                                            f"disagreement alike ({100 * best.improvement:.1f} % "
                                            f"and {100 * other.improvement:.1f} %)")
+        for other in refits[1:]:
+            if (other.effect == best.effect and other.location != best.location
+                    and other.score > (1.0 - self.min_location_lead) * best.score):
+                return None, None, False, (f"the signatures cannot tell {best.key} from "
+                                           f"{other.key} (scores {best.score:.0f} and "
+                                           f"{other.score:.0f})")
         return best.effect, best.location, True, (
             f"held-out nrmse {100 * best.improvement:.1f} % lower, every fold at least "
             f"{100 * worst_fold:.1f} %")
@@ -213,7 +233,8 @@ class DiscrepancyResult:
                                     if self.residuals_after is not None else None)},
             "rule": {"min_improvement": self.rule.min_improvement,
                      "min_fold_improvement": self.rule.min_fold_improvement,
-                     "min_margin": self.rule.min_margin, "max_bic": self.rule.max_bic},
+                     "min_margin": self.rule.min_margin, "max_bic": self.rule.max_bic,
+                     "min_location_lead": self.rule.min_location_lead},
             "windows": [{"label": w.label, "bar": w.bar, "kind": w.kind} for w in self.windows],
             "folds": [list(f) for f in self.folds],
             "mill": self.mill.name,
@@ -240,8 +261,10 @@ def _fit_train(engine: Engine, windows: Sequence[Window], setup: Setup, start: S
                scales: np.ndarray, max_nfev: int, keep_jac: bool = False,
                nuisance_first: bool = True) -> FitOutcome:
     if nuisance_first:
-        pre = fit(engine, windows, setup, start, free_shared=False, max_nfev=8, scales=scales)
-        start = scan_frac(engine, windows, pre.state, scales=scales)
+        # a start for the joint fit, which moves the loads again: one start per window
+        start = _nuisance(engine, windows, setup,
+                          State(p=setup.apply_gates(engine, start.p), W=start.W),
+                          scales=scales, n_starts=1, max_nfev=6).state
     out = fit(engine, windows, setup, start, max_nfev=max_nfev, scales=scales,
               keep_jac=keep_jac)
     # where bites start in their gaps is nearly discrete (drive or back flanks): look again
@@ -256,29 +279,39 @@ def _fit_train(engine: Engine, windows: Sequence[Window], setup: Setup, start: S
 
 
 def _heldout(engine: Engine, windows: Sequence[Window], setup: Setup, shared: State, *,
-             scales: np.ndarray, start_W: np.ndarray | None = None) -> FitOutcome:
+             scales: np.ndarray) -> FitOutcome:
     """Nuisance-only fit on held-out windows (shared parameters fixed).
 
-    Every model gets the same treatment: the loads start from the segmenter's
-    estimates (and from ``start_W`` when given, keeping the better), the gap
-    positions of bites are scanned before and after.
+    Every model gets the same treatment (so that no model wins by a luckier
+    start): :func:`_nuisance` from the segmenter's estimates.
     """
     p = setup.apply_gates(engine, shared.p)
-    starts = [initial_window_params(engine, windows)]
-    if start_W is not None:
-        starts.append(start_W)
-    best = None
-    for W in starts:
-        st = scan_frac(engine, windows, State(p=p, W=W), scales=scales)
-        out = fit(engine, windows, setup, st, free_shared=False, max_nfev=8, scales=scales)
-        again = scan_frac(engine, windows, out.state, scales=scales)
-        if not np.array_equal(again.W[:, 4], out.state.W[:, 4]):
-            out2 = fit(engine, windows, setup, again, free_shared=False, max_nfev=6,
-                       scales=scales)
-            out = out2 if out2.cost < out.cost else out
-        if best is None or out.cost < best.cost:
-            best = out
-    return best
+    return _nuisance(engine, windows, setup, State(p=p, W=initial_window_params(engine, windows)),
+                     scales=scales)
+
+
+def _nuisance(engine: Engine, windows: Sequence[Window], setup: Setup, start: State, *,
+              scales: np.ndarray, n_starts: int = 2, max_nfev: int = 10) -> FitOutcome:
+    """Per-window loads with the shared parameters held, window by window.
+
+    The load ramp's duration and the gap positions of bites make local minima
+    (the timing of flank impacts), so each window is fitted from the
+    ``n_starts`` best rows of a grid of ramp durations and gap positions
+    (:func:`~.engine.ramp_starts`) and keeps the best.  Windows do not
+    share anything here, so each gets its own trust region.
+    """
+    p = setup.apply_gates(engine, start.p)
+    W = start.W.copy()
+    for i, w in enumerate(windows):
+        best = None
+        for row in ramp_starts(engine, w, p, W[i], k=n_starts, scales=scales):
+            out = fit(engine, [w], setup, State(p=p, W=row[None, :]), free_shared=False,
+                      max_nfev=max_nfev, scales=scales, ftol=1e-4)
+            if best is None or out.cost < best.cost:
+                best = out
+        W[i] = best.state.W[0]
+    return fit(engine, windows, setup, State(p=p, W=W), free_shared=False, max_nfev=0,
+               scales=scales)
 
 
 def _bic(out: FitOutcome) -> float:
@@ -297,7 +330,7 @@ def _effect_params(engine: Engine, setup: Setup, state: State, key: str) -> dict
     if name == "backlash":
         return {"gap": float(state.p[engine.p_index(f"{loc}.gap")])}
     c = engine.candidates[engine.candidate_index(key)]
-    out = {nm: float(state.p[engine.p_index(f"{key}.{nm}")]) for nm in c.param_names}
+    out = {nm: float(state.p[engine.p_index(f"{c.key}.{nm}")]) for nm in c.param_names}
     if name in ("softening_stiffness", "hardening_stiffness"):
         out["k_after"] = out["k_ratio"] * engine.mill.element(loc).k
     return out
@@ -391,8 +424,9 @@ def discrepancy(data: Any, mill: Mill, *, rule: DecisionRule = DecisionRule(),
     for fd in folds:
         tw = [windows[i] for i in fd.train]
         moved = _moved_outcome(fd.base, base_engine, super_engine)
-        per_fold_scores.append({c.key: c for c in score_candidates(super_engine, tw, moved,
-                                                                   scales=scales)})
+        linear = score_candidates(super_engine, tw, moved, scales=scales)
+        per_fold_scores.append({c.key: c for c in rescore_on_grid(
+            super_engine, tw, moved, linear, scales=scales, top=n_refit + 2)})
     keys = list(dict.fromkeys(k for sc in per_fold_scores for k in sc))
     candidates = []
     for key in keys:
@@ -465,7 +499,7 @@ def _best_start(engine: Engine, setup: Setup, windows: Sequence[Window], base: S
             c = _cost(engine, windows, setup, st, scales)
             if c < best_cost:
                 best_state, best_cost = st, c
-    for point in start_grid(engine.mill, cand):
+    for point in start_grid(engine.mill, cand, torque=peak_torque(windows)):
         st = start_state(engine, base, replace(cand, start=point))
         st = scan_frac(engine, windows, State(p=setup.apply_gates(engine, st.p), W=st.W),
                        scales=scales)
@@ -485,7 +519,7 @@ def _fresh_start(engine: Engine, setup: Setup, windows: Sequence[Window],
     best, best_cost = None, math.inf
     start = State(p=engine.base_params(), W=base.W.copy())
     for point in ([dict(cand.start)] if cand.start else []) + start_grid(
-            engine.mill, cand, fine=True):
+            engine.mill, cand, fine=True, torque=peak_torque(windows)):
         st = start_state(engine, start, replace(cand, start=point))
         st = scan_frac(engine, windows, State(p=setup.apply_gates(engine, st.p), W=st.W),
                        scales=scales)
@@ -495,41 +529,66 @@ def _fresh_start(engine: Engine, setup: Setup, windows: Sequence[Window],
     return best
 
 
+def _regrid(engine: Engine, setup: Setup, windows: Sequence[Window], out: FitOutcome,
+            cand: CandidateScore, *, scales: np.ndarray, max_nfev: int) -> FitOutcome:
+    """Look again from a fit's gaps and loads: the candidate's fine grid, refitted if better.
+
+    The starting grids were judged with the baseline's loads (or the mill file's
+    gaps); once the loads fit the candidate, a grid point that beats the fit
+    itself marks a better basin (a knee with its stiffness ratio, a lag, a gap).
+    """
+    best_cost, best = 2.0 * out.cost, None  # _cost is the plain sum of squares
+    for point in start_grid(engine.mill, cand, fine=True, torque=peak_torque(windows)):
+        st = start_state(engine, out.state, replace(cand, start=point))
+        c = _cost(engine, windows, setup, st, scales)
+        if c < best_cost:
+            best_cost, best = c, st
+    if best is None:
+        return out
+    alt = fit(engine, windows, setup, best, max_nfev=max_nfev, scales=scales)
+    return alt if alt.cost < out.cost else out
+
+
 #: Effect parameters that scale the effect linearly (halved with a half step).
 _LINEAR = ("force", "amplitude", "k", "c")
 
 
 def _grid_refine(engine: Engine, setup: Setup, windows: Sequence[Window], start: State,
                  key: str, *, scales: np.ndarray) -> State:
-    """Coarse-to-fine grid over ``amplitude`` and ``phase`` of a roll-angle effect."""
+    """Grid over ``amplitude`` and ``phase`` of a roll-angle effect, then a finer one.
+
+    Each point is judged after a short fit of the loads: the bites' ramps and
+    gap positions were fitted for another model, and at them the cost over the
+    phase has its minima in the wrong places.  The amplitudes are shares of
+    the spindle's gap (the open part cannot swing further than the gap).
+    """
     ia = engine.p_index(f"{key}.amplitude")
     ip = engine.p_index(f"{key}.phase")
     gap = max(engine.mill.element(key.split("@", 1)[1]).gap, 1e-3)
+    hold = Setup.baseline(engine).with_active(setup.active)
 
-    def cost_at(a: float, ph: float) -> float:
+    def cost_at(a: float, ph: float) -> tuple[float, np.ndarray]:
         p = start.p.copy()
         p[ia], p[ip] = a, ph
-        return _cost(engine, windows, setup, State(p=p, W=start.W), scales)
+        out = fit(engine, windows, hold, State(p=p, W=start.W), free_shared=False, max_nfev=4,
+                  scales=scales, ftol=1e-3)
+        return out.cost, out.state.W
 
-    best = (_cost(engine, windows, setup, start, scales), float(start.p[ia]),
-            float(start.p[ip]))
-    for a in (0.2, 0.35, 0.5, 0.7, 0.9):
-        for ph in np.arange(16) * math.pi / 8:
-            c = cost_at(a * gap, ph)
+    c0, W0 = cost_at(float(start.p[ia]), float(start.p[ip]))
+    best = (c0, float(start.p[ia]), float(start.p[ip]), W0)
+    for a in (0.35, 0.7):
+        for ph in np.arange(8) * math.pi / 4:
+            c, W = cost_at(a * gap, ph)
             if c < best[0]:
-                best = (c, a * gap, ph)
-    for da, dp in ((0.12, 0.2), (0.06, 0.1), (0.03, 0.05)):
-        c0, a0, p0 = best
-        for fa in (1 - da, 1.0, 1 + da):
-            for ph in (p0 - dp, p0, p0 + dp):
-                if fa == 1.0 and ph == p0:
-                    continue
-                c = cost_at(a0 * fa, ph)
-                if c < best[0]:
-                    best = (c, a0 * fa, ph)
+                best = (c, a * gap, ph, W)
+    _, a0, p0, _ = best
+    for fa, dp in ((0.75, 0.0), (1.3, 0.0), (1.0, -math.pi / 8), (1.0, math.pi / 8)):
+        c, W = cost_at(min(a0 * fa, gap), p0 + dp)
+        if c < best[0]:
+            best = (c, min(a0 * fa, gap), p0 + dp, W)
     p = start.p.copy()
     p[ia], p[ip] = best[1], best[2]
-    return State(p=p, W=start.W.copy())
+    return State(p=p, W=best[3].copy())
 
 
 def _cost(engine: Engine, windows: Sequence[Window], setup: Setup, state: State,
@@ -561,17 +620,16 @@ def _refit(mill: Mill, cand: CandidateScore, folds: list, windows: Sequence[Wind
         start_cand = sc if (sc is not None and sc.score > 0) else cand
         st = _best_start(engine, setup, tw, fd.base.state.moved(base_engine, engine),
                          start_cand, scales=scales, base_fit=fd.base, base_engine=base_engine)
-        fit_setup = setup
         if rough:
-            # a rough cost (idle rattle): search the effect's parameters on a fine grid,
-            # then fit gaps and loads with them held
+            # a rough cost (idle rattle): search the effect's parameters on a grid first
             st = _grid_refine(engine, setup, tw, st, key, scales=scales)
-            fit_setup = Setup.baseline(engine).with_active(setup.active)
-        out = _fit_train(engine, tw, fit_setup, st, scales=scales, max_nfev=max_nfev,
-                         nuisance_first=False)
-        if not rough and (out.cost > 0.7 * fd.base.cost or cand.effect == "backlash"):
-            # little gained from the baseline's optimum: the baseline may have bent its
-            # gaps and gap positions around the missing effect; start afresh as the
+        # the loads first: the baseline's ramps and gap positions were fitted around the
+        # missing effect, and from them the joint fit can stall far from the candidate's
+        # optimum (a knee slides along a narrow valley of the loaded stiffness)
+        out = _fit_train(engine, tw, setup, st, scales=scales, max_nfev=max_nfev)
+        if not rough:
+            # the baseline may have bent its gaps and gap positions around the missing
+            # effect, and the candidate then settles next to them: start afresh as the
             # baseline did, from the mill file's gaps and the best grid point
             moved = fd.base.state.moved(base_engine, engine)
             starts = [_fresh_start(engine, setup, tw, start_cand, moved, scales=scales)]
@@ -584,9 +642,9 @@ def _refit(mill: Mill, cand: CandidateScore, folds: list, windows: Sequence[Wind
                 alt = _fit_train(engine, tw, setup, fresh, scales=scales, max_nfev=max_nfev)
                 if alt.cost < out.cost:
                     out = alt
+            out = _regrid(engine, setup, tw, out, start_cand, scales=scales, max_nfev=max_nfev)
         hw = [windows[i] for i in fd.test]
-        ho = _heldout(engine, hw, fit_setup, out.state, scales=scales,
-                      start_W=fd.heldout[0].state.W)
+        ho = _heldout(engine, hw, setup, out.state, scales=scales)
         for j, i in enumerate(fd.test):
             sims[i] = ho.sims[j]
         params.append(_effect_params(engine, setup, out.state, key))

@@ -106,15 +106,25 @@ def _smin(x: Any, w: Any) -> Any:
     return ca.fmin(x, 0) if w is None else laws.smooth_min(x, w, ca)
 
 
-def typical_deflection(mill: Mill, element_id: str) -> float:
-    """Deflection beyond contact under the nominal rolling torque, rad (static share)."""
+def typical_deflection(mill: Mill, element_id: str, *, torque: float | None = None) -> float:
+    """Static deflection beyond contact of an element under a rolling torque, rad.
+
+    Parameters
+    ----------
+    mill : Mill
+    element_id : str
+    torque : float, optional
+        Total rolling torque, N*m reduced (default :func:`~.scenario.nominal_torque`);
+        the element carries its static share of it.
+    """
     from .scenario import nominal_torque
 
     from ..segment.loadshare import load_fractions
 
     share = load_fractions(mill).get(element_id, 0.5)
     e = mill.element(element_id)
-    return max(abs(share) * nominal_torque(mill) / e.k, 1e-4)
+    t = nominal_torque(mill) if torque is None else abs(float(torque))
+    return max(abs(share) * t / e.k, 1e-4)
 
 
 class _Base:
@@ -221,10 +231,28 @@ class _KneeStiffness(_Base):
     def neutral(self, mill: Mill) -> dict[str, float]:
         return {"knee": float(self.knee), "k_ratio": 1.0}
 
-    def knee_guesses(self, mill: Mill) -> tuple[float, ...]:
-        """Knee positions worth trying first, rad: fractions of the nominal-load deflection."""
-        d = typical_deflection(mill, self.location)
-        return tuple(f * d for f in (0.25, 0.5, 0.8))
+    #: Fractions of the largest static deflection the knee guesses sit at: roughly
+    #: geometric over the whole range a knee can be seen in (beyond the largest
+    #: deflection it is crossed in overshoots only), not fitted to any one case.
+    KNEE_FRACTIONS: ClassVar[tuple[float, ...]] = (0.08, 0.15, 0.27, 0.45, 0.7, 1.0)
+
+    def knee_guesses(self, mill: Mill, *, torque: float | None = None) -> tuple[float, ...]:
+        """Knee positions worth trying first, rad.
+
+        Parameters
+        ----------
+        mill : Mill
+        torque : float, optional
+            Largest static rolling torque in the data, N*m reduced (default the
+            mill's nominal torque).
+
+        Returns
+        -------
+        tuple of float
+            :attr:`KNEE_FRACTIONS` of the element's static deflection under ``torque``.
+        """
+        d = typical_deflection(mill, self.location, torque=torque)
+        return tuple(f * d for f in self.KNEE_FRACTIONS)
 
 
 @dataclass(frozen=True)
