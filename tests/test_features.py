@@ -230,3 +230,48 @@ def test_seed_a45_against_a20_after_spindle_wear(mill):
     assert amps[0.0][0] == pytest.approx(0.295, abs=0.02)
     assert amps[0.012][0] == pytest.approx(0.717, abs=0.04)
     assert amps[0.012][1] / amps[0.012][0] > amps[0.0][1] / amps[0.0][0]
+
+
+# ---- gap-sweep and rattle features against synthetic truth ---------------------------------
+
+def test_sweep_features_time_a_delayed_rise_and_a_back_flank_contact():
+    """A step held back 12 ms (a gap's closure), then a back-flank contact 60 ms after it
+    reached its new level: times to within one sample, the squared-time feature by its
+    formula."""
+    from ident.features.sweep import normalised_window, sweep_features
+
+    rate, before = 2000.0, 0.05
+    t = np.arange(-0.05, 0.45, 1 / rate)
+    x = np.clip((t - 0.012) / 0.01, 0.0, 1.0)  # reaches 50 % at 17 ms, 90 % at 21 ms
+    x = np.where(t > 0.021 + 0.060, 1.2, x)  # back flank: beyond the level against the step
+    y = normalised_window(3.0 * x + 5.0, t[0], rate, 0.0, 5.0, 3.0, before_s=before,
+                          after_s=0.45)
+    np.testing.assert_allclose(y, x, atol=1e-12)
+    f = sweep_features(y, rate, int(before * rate), static_norm=0.5, window_valid_s=0.44)
+    assert f["rise50_ms"] == pytest.approx(17.0, abs=0.5)
+    assert f["rise05_ms"] == pytest.approx(12.5, abs=0.5)
+    assert f["back04_ms"] == pytest.approx(60.0, abs=1.0)
+    assert f["back04_sq"] == pytest.approx((f["back04_ms"] / 1e3) ** 2 * 0.5 * 1e3)
+    assert f["onset_rate"] == pytest.approx(100.0, rel=0.05)  # 1/(10 ms)
+    assert f["peak"] == pytest.approx(1.2)
+    # never beyond the level: the back-flank time saturates at its "never" value
+    g = sweep_features(np.clip(y, None, 1.0), rate, int(before * rate), 0.5, 0.44)
+    assert g["back04_ms"] == 400.0 and g["settled"] == pytest.approx(1.0, abs=0.02)
+
+
+def test_rattle_features_count_impacts():
+    """Decaying 400 Hz bursts every 20 ms: 50 impacts per second, 20 ms apart."""
+    from ident.features.rattle import rattle_features
+
+    rate = 10_000.0
+    t = np.arange(0, 0.4, 1 / rate)
+    x = np.zeros_like(t)
+    for t0 in np.arange(0.005, 0.4, 0.02):
+        m = t >= t0
+        x[m] += np.exp(-(t[m] - t0) / 0.002) * np.sin(2 * np.pi * 400 * (t[m] - t0))
+    f = rattle_features(x, rate, a_ref=1.0)
+    assert f["rate"] == pytest.approx(50.0, rel=0.1)
+    assert f["ival_ms"] == pytest.approx(20.0, abs=0.2)
+    assert f["b4"] + f["b5"] > 0.5  # 300-700 Hz holds the ringing
+    assert 300.0 < f["cent_low_hz"] < 500.0
+    assert np.isnan(rattle_features(x[:10], rate, 1.0)["lrms"])

@@ -163,6 +163,18 @@ class LinearReference:
             self._cache[key] = self._simulate(r, float(rate_hz), tuple(near))
         return self._cache[key]
 
+    def warm(self, rate_hz: float, near: tuple[str, ...]) -> "LinearReference":
+        """Compute every grid rise time's unit response now (before pickling to workers).
+
+        Returns
+        -------
+        LinearReference
+            ``self``.
+        """
+        for r in self.rise_grid_s:
+            self.response(r, rate_hz, near)
+        return self
+
     def _simulate(self, rise_s: float, rate_hz: float, near: tuple[str, ...]) -> UnitResponse:
         mill = self.mill
         S = nominal_torque(mill)
@@ -231,16 +243,17 @@ class LinearReference:
         dt = 0.25 / ref.rate_hz
         shifts = np.arange(-max_shift_s, max_shift_s + 0.5 * dt, dt) if max_shift_s > 0 \
             else np.zeros(1)
+        grid = (tau[None, :] - shifts[:, None]).ravel()
         best, best_shift, best_err = None, 0.0, np.inf
         for r in self.rise_grid_s:
             u = self.response(r, ref.rate_hz, near)
-            for sh in shifts:
-                model = sum(u.at(e, tau - sh) for e in near)
-                # the step's height is free here: levels read from medians of ringing
-                # signals are off by a percent, which would bias the rise time
-                mm = float(model @ model)
-                a = float(model @ meas) / mm if mm > 0 else 1.0
-                err = float(np.sum((meas - a * model) ** 2))
-                if err < best_err:
-                    best, best_shift, best_err = u, float(sh), err
+            model = sum(u.at(e, grid) for e in near).reshape(shifts.size, tau.size)
+            # the step's height is free here: levels read from medians of ringing
+            # signals are off by a percent, which would bias the rise time
+            mm = np.einsum("ij,ij->i", model, model)
+            a = np.where(mm > 0, model @ meas / np.where(mm > 0, mm, 1.0), 1.0)
+            err = np.sum((meas[None, :] - a[:, None] * model) ** 2, axis=1)
+            i = int(np.argmin(err))
+            if err[i] < best_err:
+                best, best_shift, best_err = u, float(shifts[i]), float(err[i])
         return best, best_shift  # type: ignore[return-value]  # the grid is never empty

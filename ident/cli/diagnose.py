@@ -1,0 +1,121 @@
+"""``ident diagnose REC --mill M [--model MODEL] [--out F] [--quiet]``.
+
+Reads the recording, finds its load-step transients (``ident.segment``),
+extracts the natural-frequency amplitudes and phases against the linear
+baseline and the other transient features (``ident.features``) and applies
+the mill's trained model (``ident.diagnose``).  Without ``--model`` it uses the
+cached model of that mill file (``$IDENT_CACHE/models/<sha256>.joblib``),
+training it on first use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..diagnose import (Diagnosis, DiagnosticModel, diagnose_features, load_model,
+                        model_cache_path)
+from ..errors import IdentError, ModelArtifactError
+from ..features import feature_summary, recording_features, transient_features
+from .common import add_common, load_mill_arg, write_json
+from .train import DEFAULT_SAMPLES, train_and_save
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "diagnose", help="wear state per element and bearing",
+        description="Wear state (good/worn/critical) per element and bearing from the "
+                    "natural-frequency amplitudes and phases of the load-step transients "
+                    "against the linear baseline, TAF against static torque and the "
+                    "bearings' accelerometers.  Without --model the mill's cached model is "
+                    "used, trained on first use.")
+    p.add_argument("recording", metavar="REC", help="recording (.mcap or .csv)")
+    add_common(p)
+    p.add_argument("--model", metavar="MODEL", help="trained model artefact (ident train)")
+    p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
+                   help="library size when a model has to be trained first")
+    p.add_argument("--jobs", type=int, default=2, metavar="N",
+                   help="worker processes when a model has to be trained first")
+
+
+def _model(args: argparse.Namespace, mill: Any) -> tuple[DiagnosticModel, str]:
+    if args.model:
+        return load_model(args.model, mill), str(args.model)
+    path = model_cache_path(mill)
+    if path.exists():
+        try:
+            return load_model(path, mill), str(path)
+        except ModelArtifactError as exc:
+            if not args.quiet:
+                print(f"ident diagnose: cached model unusable ({exc}); retraining",
+                      file=sys.stderr)
+    if not args.quiet:
+        print(f"ident diagnose: no model for mill '{mill.name}' yet; training one on "
+              f"{args.samples} simulated recordings (cached in {path})", file=sys.stderr)
+    train_and_save(mill, path, samples=args.samples, seed=0, jobs=args.jobs, bearings=True,
+                   quiet=args.quiet)
+    return load_model(path, mill), str(path)
+
+
+def diagnosis_json(diag: Diagnosis, mill: Any) -> dict[str, Any]:
+    """The ``elements`` and ``bearings`` blocks of cli.md's ``diagnose`` JSON (plus extras)."""
+    def block(d, size_key: str, extra: dict[str, Any]) -> dict[str, Any]:
+        out = {"state": d.state, "probability": d.probability, size_key: d.size}
+        out.update(extra)
+        out.update({f"{size_key}_ci95": list(d.interval), "probabilities": d.probabilities,
+                    "uncertain": d.uncertain, "novelty": d.novelty,
+                    "explanations": list(d.explanation)})
+        return out
+
+    elements = {}
+    for e in mill.elements:
+        d = diag.elements.get(e.id)
+        if d is None:
+            continue
+        extra = {"observable": d.observable}
+        mm = e.gap_mm(d.size)
+        if mm is not None:
+            extra["gap_mm"] = mm
+        elements[e.id] = block(d, "gap", extra)
+    bearings = {b.id: block(diag.bearings[b.id], "clearance",
+                            {"clearance_mm": diag.bearings[b.id].size * 1e3})
+                for b in mill.bearings if b.id in diag.bearings}
+    return {"elements": elements, "bearings": bearings}
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..io.readers import read_recording
+    from ..segment import segment_transients
+
+    mill = load_mill_arg(args)
+    rec_path = Path(args.recording)
+    rec = read_recording(rec_path, mill)
+    segments = segment_transients(rec, mill)
+    if not segments:
+        raise IdentError(f"{rec_path}: no load-step transient (bite or release) found; "
+                         f"diagnosis needs at least one bar")
+    model, model_path = _model(args, mill)
+    tf = transient_features(rec, mill, [s.t_step for s in segments], options=model.options)
+    if len(tf.table) == 0:
+        raise IdentError(f"{rec_path}: the load steps found are too close together or too "
+                         f"close to the recording's ends to analyse")
+    fv = recording_features(tf)
+    diag = diagnose_features(model, fv)
+    out = {"mill": mill.name, "recording": str(rec_path)}
+    out.update(diagnosis_json(diag, mill))
+    out["features"] = feature_summary(tf)
+    out["uncertain"] = any(d.uncertain for d in (*diag.elements.values(),
+                                                  *diag.bearings.values()))
+    warnings = list(diag.warnings) + [i.message for i in rec.issues]
+    out["warnings"] = warnings
+    out["transients"] = {"bites": int((tf.table["kind"] == "bite").sum()),
+                         "releases": int((tf.table["kind"] == "release").sum())}
+    out["model"] = {"path": model_path, "samples": model.n_samples,
+                    "mill_sha256": model.mill_sha256, "versions": model.versions}
+    write_json(out, args.out)
+    if not args.quiet:
+        states = ", ".join(f"{k}={v.state}" for k, v in diag.elements.items())
+        print(f"ident diagnose: {rec_path.name}: {states}", file=sys.stderr)
+    return 0

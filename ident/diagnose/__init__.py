@@ -1,0 +1,28 @@
+"""Wear diagnosis: simulated library, classifiers, the model artefact, bearings.
+
+    mill file ──► library.simulate_library (a few worn elements, clearances, nuisance)
+                      │ features (ident.features)
+                      ▼
+                  model.train_model ──► DiagnosticModel ──► save_model / load_model
+                                              │
+    recording features ──► model.diagnose_features ──► Diagnosis (+ explain)
+
+``bearings`` gives the shaft-centre trajectory and the maximum radial load
+against clearance (seed section 2.2, Fig. 8).
+"""
+
+from .bearings import RadialLoadCurve, maintenance_clearance, radial_load_curve, shaft_trajectory
+from .estimators import GapRegressor, NoveltyDetector, WearClassifier
+from .explain import describe_feature, explain_decision
+from .library import (Library, LibraryRanges, LibrarySimulator, draw_sample, simulate_library,
+                      simulate_sample)
+from .model import (Diagnosis, DiagnosticModel, TargetDiagnosis, diagnose_features,
+                    library_versions, load_model, model_cache_path, save_model, train_model)
+from .states import WearState, bearing_state, element_state
+
+__all__ = ["RadialLoadCurve", "maintenance_clearance", "radial_load_curve", "shaft_trajectory",
+           "GapRegressor", "NoveltyDetector", "WearClassifier", "describe_feature",
+           "explain_decision", "Library", "LibraryRanges", "LibrarySimulator", "draw_sample", "simulate_library",
+           "simulate_sample", "Diagnosis", "DiagnosticModel", "TargetDiagnosis",
+           "diagnose_features", "library_versions", "load_model", "model_cache_path",
+           "save_model", "train_model", "WearState", "bearing_state", "element_state"]

@@ -1,0 +1,498 @@
+"""The trained diagnosis model: training, the artefact on disk, diagnosing one recording.
+
+A :class:`DiagnosticModel` holds, per element of the mill, a
+:class:`~ident.diagnose.estimators.GapRegressor` (gap, rad) and a
+:class:`~ident.diagnose.estimators.WearClassifier` (good / worn / critical by
+the element's ``gap_worn``/``gap_critical``), and per bearing the same for the
+radial clearance (m).  The state is defined by the true gap against fixed
+limits, so its probability is mostly (``blend`` = 3/4) that of the gap's
+interval under the regressor's local out-of-fold error distribution
+(:meth:`~ident.diagnose.estimators.GapRegressor.predict_bin_proba`), the rest
+the direct classifier's -- on four pairs of held-out libraries the regressor's
+intervals alone were the more accurate for most targets, the 3/4 mix the best
+on average (0, 1/2, 3/4 and 1 tried); the classifier's novelty detector says
+when a recording lies outside the library, and then both are shrunk towards
+"don't know"; both are shrunk towards "don't know" as the recording
+leaves the library's range.  Elements learn from the torque features,
+bearings from their accelerometers' features (seed section 2.2) plus the
+static torque, rise time and idle load; each target from the
+``max_features`` of its features that rank-correlate best with its gap over
+the library.  An element without a torque channel on it is diagnosed all the
+same but marked ``observable: False``.
+
+The artefact (:func:`save_model`/:func:`load_model`) is a joblib file of the
+model with the mill file's SHA-256 and the versions of ident, scikit-learn and
+numpy it was trained with; loading refuses a different mill file or different
+versions with :class:`~ident.errors.ModelArtifactError`.  The default cache is
+``$IDENT_CACHE/models/<sha256>.joblib`` (or ``~/.cache/ident/models``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import pandas as pd
+
+from ..description import Mill
+from ..errors import ModelArtifactError
+from ..features.extract import FeatureOptions
+from .estimators import GapRegressor, WearClassifier, shrink_to_uniform
+from .library import Library, LibraryRanges
+from .states import STATES
+
+__all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "save_model",
+           "load_model", "model_cache_path", "library_versions", "diagnose_features",
+           "element_feature_names", "bearing_feature_names", "UNCERTAIN_PROBABILITY"]
+
+#: a decision whose probability is below this is reported ``uncertain``
+UNCERTAIN_PROBABILITY = 0.6
+ARTEFACT_FORMAT = 1
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries a model artefact depends on."""
+    import importlib.metadata
+
+    import sklearn
+
+    try:  # the installed distribution's version (ident's top-level package is downstream)
+        ident_version = importlib.metadata.version("ident")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - run from a checkout
+        ident_version = "unknown"
+    return {"ident": ident_version, "scikit-learn": sklearn.__version__,
+            "numpy": np.__version__}
+
+
+def _is_accel(name: str) -> bool:
+    parts = name.split(".")
+    return len(parts) >= 2 and ":" in parts[1]
+
+
+#: per-transient context features (static torque, fitted rise time, load between bars)
+CONTEXT_FEATURES: tuple[str, ...] = ("static", "rise_ms", "idle_level")
+
+
+def element_feature_names(columns: list[str]) -> list[str]:
+    """Torque-derived features (everything but accelerometer features and counts)."""
+    return [c for c in columns if not _is_accel(c) and not c.startswith("n_")]
+
+
+def bearing_feature_names(columns: list[str], bearing_id: str) -> list[str]:
+    """A bearing's accelerometer features plus the static torque, rise time and idle load."""
+    ctx = {f"{k}.{c}" for k in ("bite", "release") for c in CONTEXT_FEATURES}
+    return [c for c in columns if _is_accel(c) and c.split(".")[1].startswith(f"{bearing_id}:")] \
+        + [c for c in columns if c in ctx]
+
+
+@dataclass(frozen=True)
+class TargetModel:
+    """Regressor and classifier of one element or bearing.
+
+    Attributes
+    ----------
+    kind : str
+        ``"element"`` or ``"bearing"``.
+    features : tuple of str
+        The columns both estimators read, in order.
+    classifier : WearClassifier
+    regressor : GapRegressor
+    limits : (float, float)
+        Worn and critical limits of the gap (rad) or clearance (m).
+    importances : tuple of (str, float)
+        Permutation importance of the regressor over the library, largest first.
+    class_medians : dict
+        Per state, each feature's median over the library's samples of that state.
+    observable : bool
+        A torque channel sees the element (always True for bearings).
+    blend : float
+        Weight of the regressor's interval probabilities (the classifier's: ``1 - blend``).
+    """
+
+    kind: str  # "element" | "bearing"
+    features: tuple[str, ...]
+    classifier: WearClassifier
+    regressor: GapRegressor
+    limits: tuple[float, float]
+    importances: tuple[tuple[str, float], ...]
+    class_medians: dict[str, dict[str, float]]
+    observable: bool = True
+    blend: float = 0.75
+
+    def state_proba(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Probabilities of :data:`~ident.diagnose.states.STATES` (in that order) and novelty.
+
+        Returns
+        -------
+        proba : ndarray, shape (n, 3)
+        novelty : ndarray, shape (n,)
+            The distance ratio to the library (> 1: unusual).
+        """
+        X = np.asarray(X, dtype=float)
+        nov = self.classifier.novelty_ratio(X)
+        p_clf = np.zeros((X.shape[0], len(STATES)))
+        raw = self.classifier.predict_proba_in_range(X)
+        for j, c in enumerate(self.classifier.classes_):
+            p_clf[:, STATES.index(str(c))] = raw[:, j]
+        p = self.blend * self.regressor.predict_bin_proba(X, self.limits) + \
+            (1.0 - self.blend) * p_clf
+        return shrink_to_uniform(p, nov, span=self.classifier.novelty_span), nov
+
+
+@dataclass(frozen=True)
+class DiagnosticModel:
+    """Everything ``ident diagnose`` needs for one mill file.
+
+    Attributes
+    ----------
+    mill_name, mill_sha256 : str
+    versions : dict
+        ``ident``, ``scikit-learn``, ``numpy`` versions at training.
+    feature_names : tuple of str
+        Columns of the library's features, in order.
+    targets : dict
+        Element and bearing id to its :class:`TargetModel`.
+    n_samples : int
+        Library size.
+    ranges : LibraryRanges
+    options : FeatureOptions
+    random_state : int or None
+    """
+
+    mill_name: str
+    mill_sha256: str
+    versions: dict[str, str]
+    feature_names: tuple[str, ...]
+    targets: dict[str, TargetModel]
+    n_samples: int
+    ranges: LibraryRanges = field(default_factory=LibraryRanges)
+    options: FeatureOptions = field(default_factory=FeatureOptions)
+    random_state: int | None = None
+
+    @property
+    def element_ids(self) -> tuple[str, ...]:
+        return tuple(k for k, t in self.targets.items() if t.kind == "element")
+
+    @property
+    def bearing_ids(self) -> tuple[str, ...]:
+        return tuple(k for k, t in self.targets.items() if t.kind == "bearing")
+
+
+def _rank_columns(X: np.ndarray) -> np.ndarray:
+    """Column ranks (average ties) with NaN at the column's median rank."""
+    import scipy.stats as st
+
+    R = np.empty_like(X, dtype=float)
+    for j in range(X.shape[1]):
+        x = X[:, j]
+        ok = np.isfinite(x)
+        r = np.full(x.size, np.nan)
+        r[ok] = st.rankdata(x[ok])
+        r[~ok] = np.nanmedian(r) if ok.any() else 0.0
+        R[:, j] = r
+    return R
+
+
+def select_features(X: np.ndarray, y: np.ndarray, names: list[str], k: int) -> list[str]:
+    """The ``k`` columns whose ranks correlate best (absolute Spearman) with ``y``.
+
+    Columns with fewer than two finite values or no spread are never chosen.
+    """
+    X = np.asarray(X, dtype=float)
+    finite = np.isfinite(X)
+    lo = np.where(finite, X, np.inf).min(axis=0)
+    hi = np.where(finite, X, -np.inf).max(axis=0)
+    usable = (finite.sum(axis=0) >= 2) & (hi > lo)
+    idx = np.flatnonzero(usable)
+    if idx.size <= k:
+        return [names[i] for i in idx]
+    R = _rank_columns(X[:, idx])
+    ry = _rank_columns(np.asarray(y, dtype=float)[:, None])[:, 0]
+    Rc = R - R.mean(axis=0)
+    yc = ry - ry.mean()
+    den = np.sqrt((Rc ** 2).sum(axis=0) * (yc ** 2).sum())
+    rho = np.abs(Rc.T @ yc) / np.where(den > 0, den, np.inf)
+    best = idx[np.argsort(-rho, kind="stable")[:k]]
+    return [names[i] for i in sorted(best)]
+
+
+def _importances(reg: GapRegressor, X: np.ndarray, y: np.ndarray, names: list[str], *,
+                 top: int = 20, candidates: int = 40,
+                 random_state: int | None = 0) -> tuple[tuple[str, float], ...]:
+    """Permutation importance of the regressor on a subsample, for its top-correlated columns.
+
+    The drop of R^2 when one column is shuffled (one repeat, at most 200
+    rows), tried for the ``candidates`` columns that rank-correlate best with
+    the target; the ``top`` largest positive ones.
+    """
+    rng = np.random.default_rng(random_state)
+    n = min(X.shape[0], 200)
+    idx = rng.choice(X.shape[0], n, replace=False)
+    Xs, ys = X[idx], y[idx]
+    cand = select_features(Xs, ys, list(range(X.shape[1])), candidates)  # type: ignore[arg-type]
+    base = reg.score(Xs, ys)
+    imp = []
+    for j in cand:
+        Xp = Xs.copy()
+        Xp[:, j] = Xp[rng.permutation(n), j]
+        imp.append((names[j], float(base - reg.score(Xp, ys))))
+    imp.sort(key=lambda t: -t[1])
+    return tuple((k, v) for k, v in imp[:top] if v > 0)
+
+
+def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
+                max_iter: int = 200, max_features: int = 200, blend: float = 0.75,
+                progress: Callable[[str], None] | None = None) -> DiagnosticModel:
+    """Train the regressors and classifiers of every element and bearing.
+
+    Parameters
+    ----------
+    library : Library
+        Simulated from ``mill`` (:func:`ident.diagnose.simulate_library`).
+    mill : Mill
+    random_state : int or None
+    max_iter : int
+        Boosting iterations of each regressor (the classifiers take half).
+    max_features : int
+        Features per target (those whose ranks correlate best with its gap).
+    blend : float
+        Weight of the regressor's interval probabilities in the state's (the
+        classifier's is ``1 - blend``).
+    progress : callable, optional
+        Called with each target's id as its training starts.
+
+    Returns
+    -------
+    DiagnosticModel
+
+    Raises
+    ------
+    ModelArtifactError
+        When the library was simulated from another mill file.
+    """
+    from threadpoolctl import threadpool_limits
+
+    if library.mill_sha256 != mill.sha256:
+        raise ModelArtifactError(
+            f"the library was simulated from mill file sha256 {library.mill_sha256[:16]}, "
+            f"not from {mill.source or mill.name} (sha256 {mill.sha256[:16]})")
+    X_all = library.features
+    cols = list(X_all.columns)
+    seen = {c.element for c in mill.torque_channels()}
+    targets: dict[str, TargetModel] = {}
+    jobs: list[tuple[str, str, list[str], str, str, tuple[float, float]]] = []
+    for e in mill.elements:
+        jobs.append((e.id, "element", element_feature_names(cols), f"{e.id}.state",
+                     f"{e.id}.gap", (e.gap_worn, e.gap_critical)))
+    if library.bearings:
+        for b in mill.bearings:
+            names = bearing_feature_names(cols, b.id)
+            if len(names) > len(CONTEXT_FEATURES) * 2:
+                jobs.append((b.id, "bearing", names, f"{b.id}.state", f"{b.id}.clearance",
+                             (b.clearance_worn, b.clearance_critical)))
+    with threadpool_limits(1):
+        for tid, kind, names, ycol, rcol, limits in jobs:
+            if progress is not None:
+                progress(tid)
+            yr = library.truth[rcol].to_numpy(dtype=float)
+            names = select_features(X_all[names].to_numpy(dtype=float), yr, names, max_features)
+            X = X_all[names].to_numpy(dtype=float)
+            y = library.truth[ycol].to_numpy()
+            # leaves of at least 10 samples, fewer for a small library (tests, demos)
+            leaf = int(np.clip(X.shape[0] // 20, 2, 10))
+            reg = GapRegressor(max_iter=max_iter, min_samples_leaf=leaf,
+                               random_state=random_state).fit(X, yr)
+            clf = WearClassifier(max_iter=max(max_iter // 2, 1), min_samples_leaf=leaf,
+                                 calibration=None, random_state=random_state).fit(X, y)
+            med = {}
+            for st_ in STATES:
+                sel = y == st_
+                sub = X[sel]
+                with np.errstate(all="ignore"):
+                    med[st_] = {n: (float(np.nanmedian(sub[:, j]))
+                                    if sel.any() and np.isfinite(sub[:, j]).any() else np.nan)
+                                for j, n in enumerate(names)}
+            targets[tid] = TargetModel(
+                kind=kind, features=tuple(names), classifier=clf, regressor=reg,
+                limits=(float(limits[0]), float(limits[1])),
+                importances=_importances(reg, X, yr, names, random_state=random_state),
+                class_medians=med, observable=(tid in seen) if kind == "element" else True,
+                blend=float(blend))
+    return DiagnosticModel(mill_name=mill.name, mill_sha256=mill.sha256,
+                           versions=library_versions(), feature_names=tuple(X_all.columns),
+                           targets=targets, n_samples=len(library), ranges=library.ranges,
+                           options=library.options, random_state=random_state)
+
+
+# ---- artefact ------------------------------------------------------------------------------
+
+def model_cache_path(mill: Mill) -> Path:
+    """Default artefact path of a mill: ``$IDENT_CACHE/models/<sha256>.joblib``."""
+    base = os.environ.get("IDENT_CACHE") or os.path.join(os.path.expanduser("~"), ".cache",
+                                                         "ident")
+    return Path(base) / "models" / f"{mill.sha256}.joblib"
+
+
+def save_model(model: DiagnosticModel, path: str | Path) -> Path:
+    """Write the artefact atomically (joblib, compressed).
+
+    Returns
+    -------
+    Path
+    """
+    import tempfile
+
+    import joblib
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        joblib.dump({"format": ARTEFACT_FORMAT, "mill_sha256": model.mill_sha256,
+                     "versions": dict(model.versions), "model": model}, tmp, compress=3)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_model(path: str | Path, mill: Mill) -> DiagnosticModel:
+    """Load an artefact and check it belongs to ``mill`` and to these library versions.
+
+    Raises
+    ------
+    ModelArtifactError
+        Unreadable file, another mill file (hash) or other library versions.
+    """
+    import joblib
+
+    path = Path(path)
+    try:
+        data = joblib.load(path)
+    except FileNotFoundError:
+        raise ModelArtifactError(f"model artefact {path} does not exist") from None
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad artefact
+        raise ModelArtifactError(f"model artefact {path} cannot be read: "
+                                 f"{type(exc).__name__}: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != ARTEFACT_FORMAT or \
+            not isinstance(data.get("model"), DiagnosticModel):
+        raise ModelArtifactError(f"{path} is not an ident diagnosis model (format "
+                                 f"{ARTEFACT_FORMAT})")
+    found = data["mill_sha256"]
+    if found != mill.sha256:
+        raise ModelArtifactError(
+            f"model artefact {path} was trained for mill file sha256 {found}, but "
+            f"{mill.source or mill.name} has sha256 {mill.sha256}; retrain with "
+            f"'ident train --mill {mill.source or 'MILL'} --out {path}'")
+    now = library_versions()
+    diff = {k: (v, now.get(k)) for k, v in data["versions"].items() if now.get(k) != v}
+    if diff:
+        txt = ", ".join(f"{k} {v[0]} (now {v[1]})" for k, v in diff.items())
+        raise ModelArtifactError(f"model artefact {path} was trained with {txt}; retrain with "
+                                 f"'ident train' under the installed versions")
+    return data["model"]
+
+
+# ---- diagnosis ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TargetDiagnosis:
+    """Diagnosis of one element or bearing.
+
+    Attributes
+    ----------
+    state : str
+        ``good``, ``worn`` or ``critical``.
+    probability : float
+        Probability of ``state`` (calibrated, shrunk towards 1/3 out of range).
+    probabilities : dict
+        Every state's probability.
+    size : float
+        Regressed gap (rad) or clearance (m).
+    interval : (float, float)
+        Approximate 95 % interval of ``size`` (out-of-fold residuals).
+    observable : bool
+        A torque channel sees the element (always True for bearings).
+    uncertain : bool
+        ``probability`` below :data:`UNCERTAIN_PROBABILITY` or the recording
+        out of the library's range.
+    novelty : float
+        Distance to the library over its 99 % quantile (> 1: unusual).
+    explanation : tuple of dict
+        Features that drove the decision (:mod:`ident.diagnose.explain`).
+    """
+
+    state: str
+    probability: float
+    probabilities: dict[str, float]
+    size: float
+    interval: tuple[float, float]
+    observable: bool
+    uncertain: bool
+    novelty: float
+    explanation: tuple[dict[str, Any], ...] = ()
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Wear states of one recording."""
+
+    elements: dict[str, TargetDiagnosis]
+    bearings: dict[str, TargetDiagnosis]
+    warnings: tuple[str, ...] = ()
+
+
+def diagnose_features(model: DiagnosticModel, features: pd.Series | Mapping[str, float], *,
+                      explain: bool = True, n_explain: int = 3) -> Diagnosis:
+    """Diagnose one recording from its feature vector.
+
+    Parameters
+    ----------
+    model : DiagnosticModel
+    features : Series or mapping
+        :func:`ident.features.recording_features` of the recording.
+    explain : bool
+        Attach the features that drove each decision.
+    n_explain : int
+        Features per decision.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    from threadpoolctl import threadpool_limits
+
+    from .explain import explain_decision
+
+    f = pd.Series(features, dtype=float).reindex(list(model.feature_names))
+    warnings: list[str] = []
+    elements, bearings = {}, {}
+    with threadpool_limits(1):
+        for tid, tm in model.targets.items():
+            x = f.reindex(list(tm.features)).to_numpy(dtype=float)[None, :]
+            if not np.isfinite(x).any():
+                warnings.append(f"{tid}: none of its features could be computed from the "
+                                f"recording")
+            elif np.isnan(x).mean() > 0.5:
+                warnings.append(f"{tid}: {int(np.isnan(x).sum())} of {x.size} features missing")
+            proba, nov_ = tm.state_proba(x)
+            probs = {s_: float(proba[0, i]) for i, s_ in enumerate(STATES)}
+            state = max(probs, key=probs.get)  # type: ignore[arg-type]
+            nov = float(nov_[0])
+            size = float(tm.regressor.predict(x)[0])
+            lo, hi = tm.regressor.predict_interval(x)[0]
+            expl: tuple = ()
+            if explain:
+                expl = explain_decision(tm, x[0], state, n=n_explain)
+            d = TargetDiagnosis(state=state, probability=probs[state], probabilities=probs,
+                                size=max(size, 0.0), interval=(max(float(lo), 0.0), float(hi)),
+                                observable=tm.observable,
+                                uncertain=bool(probs[state] < UNCERTAIN_PROBABILITY or nov > 1.0),
+                                novelty=nov, explanation=expl)
+            (elements if tm.kind == "element" else bearings)[tid] = d
+    return Diagnosis(elements=elements, bearings=bearings, warnings=tuple(warnings))

@@ -1,0 +1,293 @@
+"""Wear diagnosis end to end: library, model artefact, explanations, the CLI, and accuracy on
+held-out simulated recordings (other seeds, static torques, nuisance draws)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ident.cli import main
+from ident.diagnose import (describe_feature, diagnose_features, draw_sample, load_model,
+                            model_cache_path, save_model, simulate_library, train_model)
+from ident.diagnose.library import LibraryRanges, Nuisance, simulate_sample
+from ident.diagnose.states import STATES, bearing_state, element_state
+from ident.errors import ModelArtifactError
+from ident.model.dynamics import ModelOptions
+from ident.model.simulate import simulate
+
+#: library sizes of the accuracy test (simulated once per session)
+N_TRAIN = 280
+N_TEST = 100
+
+
+# ---- session fixtures ----------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def tiny_library(mill):
+    """A dozen recordings with bearings: enough to train, save, load and explain."""
+    return simulate_library(mill, n=12, random_state=11, bearings=True)
+
+
+@pytest.fixture(scope="session")
+def tiny_model(mill, tiny_library):
+    return train_model(tiny_library, mill, random_state=0, max_iter=30)
+
+
+@pytest.fixture(scope="session")
+def accuracy_libraries(mill, tmp_path_factory):
+    """Training and held-out libraries (different seeds), cached for the session."""
+    import joblib
+
+    d = tmp_path_factory.mktemp("libraries")
+    jobs = 2 if (os.cpu_count() or 1) >= 2 else 1
+    train = simulate_library(mill, n=N_TRAIN, random_state=101, n_jobs=jobs)
+    test = simulate_library(mill, n=N_TEST, random_state=202, n_jobs=jobs)
+    joblib.dump((train, test), d / "libraries.joblib")
+    return train, test
+
+
+@pytest.fixture(scope="session")
+def accuracy_model(mill, accuracy_libraries):
+    train, _ = accuracy_libraries
+    return train_model(train, mill, random_state=0)
+
+
+# ---- states and library --------------------------------------------------------------------
+
+def test_states_follow_the_mill_limits(mill):
+    e = mill.element("C46")
+    assert element_state(e, 0.003).value == "good"
+    assert element_state(e, 0.0041).value == "worn"
+    assert element_state(e, 0.0081).value == "critical"
+    b = mill.bearing("B23")
+    assert bearing_state(b, 0.9e-3).value == "good"
+    assert bearing_state(b, 1.5e-3).value == "worn"
+    assert bearing_state(b, 2.0e-3).value == "critical"
+    assert STATES == ("good", "worn", "critical")
+
+
+def test_nuisance_effect_equals_a_stiffer_damper_mill(mill):
+    """The stiffness/damping nuisance as model parameters = the mill file with k, c changed."""
+    spec = draw_sample(mill, np.random.default_rng(0))
+    e = mill.element("C46")
+    m2 = mill.with_overrides({"C46.k": e.k * 1.08, "C46.c": e.c * 0.75})
+    p = {"C46.gap": 0.006, "C46.gap_open": 0.003}
+    r1 = simulate(m2, spec.scenario, options=ModelOptions(bearings=False), params=p)
+    eff = Nuisance(("C46",))
+    p2 = dict(p, **eff.params(mill, {"C46": 0.006}, {"C46": 0.003}, {"C46": 1.08},
+                              {"C46": 0.75}))
+    r2 = simulate(mill, spec.scenario, options=ModelOptions(bearings=False, effects=(eff,)),
+                  params=p2)
+    scale = np.abs(r1.outputs["tau:C46"]).max()
+    assert np.abs(r1.outputs["tau:C46"] - r2.outputs["tau:C46"]).max() < 1e-6 * scale
+
+
+def test_library_draws_few_faults_and_reproduces(mill, tiny_library):
+    lib = tiny_library
+    assert len(lib) == 12 and lib.mill_sha256 == mill.sha256
+    for e in mill.elements:
+        assert set(lib.truth[f"{e.id}.state"]) <= set(STATES)
+        assert (lib.truth[f"{e.id}.gap_open"] <= lib.truth[f"{e.id}.gap"] + 1e-15).all()
+        assert lib.truth[f"{e.id}.gap"].max() <= e.gap_critical * LibraryRanges().critical_span
+    faulty = sum((lib.truth[f"{e.id}.state"] != "good").astype(int) for e in mill.elements)
+    assert faulty.max() <= len(LibraryRanges().faults) - 1
+    assert lib.truth["B23.clearance"].between(LibraryRanges().min_clearance, 3.0e-3).all()
+    for f in ("bite.C46.A20.ratio", "bite.B23:v.f_peak", "release.C12.back04_sq.min",
+              "bite.C46-C57.rise20_ms", "bite.near.peak", "release.B23:h.after.rate",
+              "bite.idle_level"):
+        assert f in lib.features, f
+    rng = np.random.default_rng(5)
+    a = draw_sample(mill, rng)
+    b = draw_sample(mill, np.random.default_rng(5))
+    assert a.gaps == b.gaps and a.scenario == b.scenario
+    with pytest.raises(ValueError, match="'n' parameter of simulate_library must be >= 1"):
+        simulate_library(mill, n=0)
+    with pytest.raises(ValueError, match="'faults' range of LibraryRanges must be"):
+        draw_sample(mill, rng, ranges=LibraryRanges(faults=(0.0, -1.0)))
+
+
+def test_simulated_recording_has_the_mill_channels(mill):
+    spec = draw_sample(mill, np.random.default_rng(1))
+    rec, res = simulate_sample(mill, spec)
+    assert set(rec.channels) == {c.name for c in mill.channels}
+    t46 = rec.channel("T_C46").to_numpy()
+    ref = res.outputs["tau:C46"].to_numpy()[:t46.size] * mill.element("C46").ratio
+    assert np.corrcoef(t46, ref)[0, 1] > 0.99  # physical torque in N*m, with noise
+
+
+# ---- model, artefact, explanations ---------------------------------------------------------
+
+def test_model_diagnoses_every_element_and_bearing(mill, tiny_model, tiny_library):
+    d = diagnose_features(tiny_model, tiny_library.features.iloc[0])
+    assert set(d.elements) == set(mill.element_ids)
+    assert set(d.bearings) == {b.id for b in mill.bearings}
+    seen = {c.element for c in mill.torque_channels()}
+    for eid, t in d.elements.items():
+        assert t.state in STATES and 0.0 <= t.probability <= 1.0
+        assert sum(t.probabilities.values()) == pytest.approx(1.0)
+        assert t.observable == (eid in seen)
+        assert t.interval[0] <= t.size + 1e-12 or t.size == 0.0
+    assert d.elements["C23"].observable is False
+
+
+def test_explanations_name_features(tiny_model, tiny_library):
+    d = diagnose_features(tiny_model, tiny_library.features.iloc[1], n_explain=3)
+    expl = [x for t in d.elements.values() for x in t.explanation]
+    assert expl, "some decision must have a driving feature"
+    for x in expl:
+        assert x["effect"] > 0 and x["feature"] in tiny_model.feature_names
+        assert isinstance(x["description"], str) and x["description"]
+    assert describe_feature("bite.C46.A20.phase") == (
+        "phase shift at 20 Hz against the linear baseline (deg) in C46's torque, at bites")
+    assert "accelerometer B23:v" in describe_feature("release.B23:v.rms")
+
+
+def test_out_of_range_recording_is_uncertain(mill, tiny_model, tiny_library):
+    """Features far outside the library: probabilities shrink towards 1/3, flagged."""
+    x = tiny_library.features.iloc[0].copy()
+    x = x + 50.0 * (x.abs() + 1.0)  # every feature far beyond anything simulated
+    d = diagnose_features(tiny_model, x)
+    for t in d.elements.values():
+        assert t.uncertain and t.novelty > 2.0
+        assert t.probability < 0.5
+
+
+def test_artefact_roundtrip_and_refusals(mill, tiny_model, tmp_path):
+    p = save_model(tiny_model, tmp_path / "m.joblib")
+    m2 = load_model(p, mill)
+    assert m2.mill_sha256 == mill.sha256 and m2.feature_names == tiny_model.feature_names
+    other = mill.with_overrides({"C46.k": 2.0e7})
+    with pytest.raises(ModelArtifactError, match=f"trained for mill file sha256 {mill.sha256}"):
+        load_model(p, other)
+    import joblib
+
+    data = joblib.load(p)
+    data["versions"]["scikit-learn"] = "0.0.1"
+    joblib.dump(data, tmp_path / "old.joblib")
+    with pytest.raises(ModelArtifactError, match=r"scikit-learn 0\.0\.1 \(now "):
+        load_model(tmp_path / "old.joblib", mill)
+    with pytest.raises(ModelArtifactError, match="does not exist"):
+        load_model(tmp_path / "missing.joblib", mill)
+    (tmp_path / "junk.joblib").write_text("not a model")
+    with pytest.raises(ModelArtifactError, match="cannot be read"):
+        load_model(tmp_path / "junk.joblib", mill)
+
+
+def test_training_refuses_a_library_of_another_mill(mill, tiny_library):
+    other = mill.with_overrides({"C46.k": 2.0e7})
+    with pytest.raises(ModelArtifactError, match="library was simulated from mill file"):
+        train_model(tiny_library, other)
+
+
+def test_model_cache_path(mill, monkeypatch, tmp_path):
+    monkeypatch.setenv("IDENT_CACHE", str(tmp_path))
+    assert model_cache_path(mill) == tmp_path / "models" / f"{mill.sha256}.joblib"
+
+
+# ---- command line ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def recording(mill_path, tmp_path_factory):
+    """A simulated recording with a worn lower spindle (ident simulate)."""
+    d = tmp_path_factory.mktemp("rec")
+    rec = d / "worn.mcap"
+    assert main(["simulate", "--mill", str(mill_path), "--out", str(rec), "--bars", "3",
+                 "--seed", "4", "--set", "C46.gap=0.010", "--set", "C46.gap_open=0.010",
+                 "--quiet"]) == 0
+    return rec
+
+
+def test_cli_diagnose_with_a_model(mill, mill_path, tiny_model, recording, tmp_path):
+    model = save_model(tiny_model, tmp_path / "m.joblib")
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(recording), "--mill", str(mill_path), "--model", str(model),
+                 "--out", str(out), "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    assert set(d["elements"]) == set(mill.element_ids)
+    assert set(d["bearings"]) == {"B23", "B45"}
+    for v in d["elements"].values():
+        assert {"state", "probability", "gap", "observable", "uncertain"} <= set(v)
+    for v in d["bearings"].values():
+        assert {"state", "probability", "clearance"} <= set(v)
+    f = d["features"]
+    assert len(f["frequencies_hz"]) == len(f["amplitude_ratio"]) == len(f["phase_shift_deg"]) == 6
+    assert d["transients"]["bites"] == 3
+
+
+def test_cli_diagnose_refuses_a_model_of_another_mill(mill, tiny_model, recording, tmp_path,
+                                                       capsys):
+    other_path = tmp_path / "other.toml"
+    text = Path(mill.source).read_text().replace("k = 1.815e7", "k = 1.9e7")
+    other_path.write_text(text)
+    model = save_model(tiny_model, tmp_path / "m.joblib")
+    code = main(["diagnose", str(recording), "--mill", str(other_path), "--model", str(model),
+                 "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "was trained for mill file sha256" in err and "retrain" in err
+
+
+def test_cli_train_then_diagnose_trains_and_caches(mill_path, recording, tmp_path, monkeypatch,
+                                                   capsys):
+    """``ident train`` writes an artefact; ``ident diagnose`` without --model trains one on
+    first use (progress on stderr) and reuses it after."""
+    out = tmp_path / "m.joblib"
+    assert main(["train", "--mill", str(mill_path), "--out", str(out), "--samples", "10",
+                 "--jobs", "1", "--no-bearings", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["samples"] == 10 and Path(summary["model"]) == out and out.exists()
+    assert main(["train", "--mill", str(mill_path), "--out", str(out), "--samples", "3"]) == 2
+    assert "--samples must be at least 10" in capsys.readouterr().err
+
+    monkeypatch.setenv("IDENT_CACHE", str(tmp_path / "cache"))
+    assert main(["diagnose", str(recording), "--mill", str(mill_path), "--samples", "10",
+                 "--jobs", "1", "--out", str(tmp_path / "a.json")]) == 0
+    err = capsys.readouterr().err
+    assert "training one on 10 simulated recordings" in err
+    cached = list((tmp_path / "cache" / "models").glob("*.joblib"))
+    assert len(cached) == 1
+    assert main(["diagnose", str(recording), "--mill", str(mill_path), "--out",
+                 str(tmp_path / "b.json")]) == 0
+    assert "training" not in capsys.readouterr().err
+    a = json.loads((tmp_path / "a.json").read_text())
+    b = json.loads((tmp_path / "b.json").read_text())
+    assert a["elements"] == b["elements"]
+
+
+# ---- accuracy on held-out simulated recordings ------------------------------------------------
+
+def _confusion(y_true, y_pred) -> pd.DataFrame:
+    cm = pd.crosstab(pd.Categorical(y_true, STATES), pd.Categorical(y_pred, STATES),
+                     rownames=["true"], colnames=["predicted"], dropna=False)
+    return cm
+
+
+@pytest.mark.slow
+def test_held_out_accuracy(mill, accuracy_libraries, accuracy_model):
+    """Held-out recordings: other seeds, static torques, rise times, noise and stiffness and
+    damping draws than the training library's.  Elements a torque channel sees >= 90 %,
+    bearings from their accelerometers >= 80 %; confusion matrices printed (pytest -s).
+    """
+    from sklearn.metrics import balanced_accuracy_score
+
+    _, test = accuracy_libraries
+    seen = {c.element for c in mill.torque_channels()}
+    acc = {}
+    pred = [diagnose_features(accuracy_model, test.features.iloc[i], explain=False)
+            for i in range(len(test))]
+    for tid, tm in accuracy_model.targets.items():
+        y = test.truth[f"{tid}.state"].to_numpy()
+        p = np.array([(d.elements.get(tid) or d.bearings.get(tid)).state for d in pred])
+        acc[tid] = float(np.mean(p == y))
+        print(f"\n{tid} ({tm.kind}{', observable' if tid in seen or tm.kind == 'bearing' else ''})"
+              f": accuracy {acc[tid]:.3f}, balanced {balanced_accuracy_score(y, p):.3f}"
+              f"\n{_confusion(y, p)}")
+    for e in seen:
+        assert acc[e] >= 0.90, (e, acc[e])
+    for b in mill.bearings:
+        assert acc[b.id] >= 0.80, (b.id, acc[b.id])
