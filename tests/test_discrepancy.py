@@ -177,6 +177,92 @@ def test_engine_states_move_between_engines_by_parameter_name(mill):
         G.Setup.for_candidate(a, "coulomb_friction@C46")
 
 
+@pytest.mark.parametrize("imbalance", [False, True])
+def test_idle_runs_float_the_rolls_as_the_simulator_does(mill, imbalance):
+    """Independent truth: ident.model.simulate with exact kinks at 50 us steps, from its own
+    state 0.1 s before a release through 1.5 s of idling.  The windows' 10 urad rounding
+    leaves a faint spring across the open gaps that floats the rolls by a good part of a
+    millirad over that time; the idle runs' rounding does not."""
+    from ident.model.effects import SpindleImbalance
+    from ident.model.scenario import load_profile
+
+    eff = (SpindleImbalance("C46"),) if imbalance else ()
+    prm = ({"spindle_imbalance@C46.amplitude": 1e-3, "spindle_imbalance@C46.phase": 1.0}
+           if imbalance else {})
+    sc = Scenario(duration=2.6, bars=(Bar(t_bite=0.2, t_release=1.0, static_torque=2e5),))
+    r = simulate(mill, sc, options=ModelOptions(bearings=False, effects=eff), params=prm)
+    eng = G.build_engine(mill, eff, dt=1e-3, n_samples=450)
+    t = r.states.index.to_numpy()
+    j0, j1 = int(np.argmin(abs(t - 0.9))), int(np.argmin(abs(t - 2.5)))
+    T = G.stage_times(eng.stepper, int(round((t[j1] - t[j0]) / 1e-3)) + 1, t[j0])
+    err = {}
+    for width in (eng.smoothing, eng.idle_smoothing):
+        p = eng.base_params()
+        p[eng.p_index("smoothing")] = width
+        for k, v in prm.items():
+            p[eng.p_index(k)] = v
+        if imbalance:
+            p[eng.p_index("spindle_imbalance@C46.gate")] = 1.0
+        X, _ = G._run(eng, r.states.iloc[j0].to_numpy(), load_profile(sc, T), p, t[j0])
+        err[width] = np.max(np.abs(X[:7, -1] - r.states.iloc[j1].to_numpy()[:7]))
+    assert err[eng.idle_smoothing] < 2e-5  # rad, a hundredth of the spindle gap
+    if not imbalance:
+        assert err[eng.smoothing] > 1e-4
+
+
+def test_idle_elements_start_inside_their_swinging_gaps(mill):
+    from ident.model.effects import SpindleImbalance
+
+    eng = G.build_engine(mill, (SpindleImbalance("C46"),), dt=1e-3, n_samples=50,
+                         compile=False)
+    w = Window(t=1.3 + np.arange(50) * 1e-3, elements=("C46",), y=np.zeros(50), t_step=1.33,
+               kind="bite", level_before=0.0, level_after=2e5, bar=0)
+    p = eng.base_params()
+    p[eng.p_index("spindle_imbalance@C46.gate")] = 1.0
+    p[eng.p_index("spindle_imbalance@C46.amplitude")] = 1.5e-3
+    shift = SpindleImbalance("C46").open_shift(mill, 1.5e-3, 0.0, float(w.t[0]))
+    assert abs(shift) > 5e-4  # the case worth testing: the gap has swung
+    j = mill.element_ids.index("C46")
+    a, b = mill.mass_index("Q4"), mill.mass_index("Q6")
+    for frac in (0.0, 0.5, 1.0):
+        wp = G.initial_window_params(eng, [w])[0]
+        wp[G.WINDOW_PARAMS.index("frac")] = frac
+        x = G.initial_state(eng, w, p, wp)
+        delta = x[a] - x[b]
+        gap = mill.elements[j].gap
+        assert shift - gap - 1e-9 <= delta <= shift + 1e-9
+        assert delta == pytest.approx(shift - frac * gap)
+
+
+def test_a_bite_after_a_release_may_start_from_its_simulated_idle_or_at_rest(mill):
+    """An idle rattle is sensitive: the simulated start is offered, not forced."""
+    from ident.model.effects import SpindleImbalance
+
+    eng = G.build_engine(mill, (SpindleImbalance("C46"),), dt=1e-3, n_samples=100)
+    w = Window(t=3.0 + np.arange(100) * 1e-3, elements=TORQUES, y=np.ones((100, 4)),
+               t_step=3.05, kind="bite", level_before=0.0, level_after=2e5, bar=1,
+               history=(1.5, 2e5, 0.0, 0.02))
+    p = eng.base_params()
+    p[eng.p_index("spindle_imbalance@C46.gate")] = 1.0
+    p[eng.p_index("spindle_imbalance@C46.amplitude")] = 1e-3
+    rows = G.ramp_starts(eng, w, p, G.initial_window_params(eng, [w])[0], k=1)
+    assert sorted(G.uses_history(eng, w, p, r) for r in rows) == [False, True]
+    off = eng.base_params()  # candidate gated off: nothing ties the idle to the roll angle
+    assert not G.can_use_history(eng, w, off)
+    assert len(G.ramp_starts(eng, w, off, G.initial_window_params(eng, [w])[0], k=1)) == 1
+
+
+@pytest.mark.parametrize("bars, folds", [((0, 1), ((0,), (1,))),
+                                         ((0, 1, 2), ((0,), (1,), (2,))),
+                                         ((0, 1, 2, 3, 4), ((0, 2, 4), (1, 3)))])
+def test_every_fold_trains_on_two_bars_where_there_are_three(bars, folds):
+    from ident.discrepancy.workflow import fold_bars
+
+    got = fold_bars(bars)
+    assert got == folds
+    assert sorted(b for f in got for b in f) == list(bars)
+
+
 # ---- residual analysis -------------------------------------------------------------------------
 def test_residual_analysis_locates_phase_frequency_load_and_roll_angle(mill):
     dt, n = 1e-3, 450

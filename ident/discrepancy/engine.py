@@ -28,7 +28,9 @@ Parameters
   ``frac`` (where unloaded elements sit in their gaps at the start of a bite
   from idle: 0 on the drive flank, 1 on the back flank) and ``slope``
   (N*m/s, a slow drift of the rolling load on the loaded side: the load's
-  fluctuation); then offsets of every mass's angle (rad) and speed (rad/s)
+  fluctuation) and ``history`` (1: a bite after a release starts where the
+  model's own run through the idle time leaves it, see below; 0: at rest at
+  ``frac``); then offsets of every mass's angle (rad) and speed (rad/s)
   from the rest state, free for bites from idle (``free_x0``): an idling
   driveline is not at rest (ring-down of the last release, rattle of a
   swinging spindle gap), and where its elements float in their gaps is not
@@ -45,11 +47,20 @@ Initial states are rest states: loaded elements in contact, found by a
 damped Newton solve of the model's own statics (knees, strip loop, gap shifts
 and the lag state included); unloaded elements placed by ``frac``.  With a
 candidate tied to the roll angle (``needs_history``: spindle imbalance) a bite
-after a release starts instead where the model itself leaves the driveline:
+after a release can start instead where the model itself leaves the driveline:
 simulated from the loaded rest before that release (segmenter's estimates of
 its load step) through the idle time, because the idle rattle and so the bite
 depend on the roll angle (effects.md: "the bite transient changes from bar to
-bar with the roll angle at bite").
+bar with the roll angle at bite").  A rattle is sensitive (a few impacts over
+a second of idling), so the simulated start is one of the starts each such
+window chooses from (``history`` 1 or 0), not forced on it.  Idle elements are
+placed within their gaps as the candidate shifts them at the window's start.
+
+The g1 kinks are rounded over ``smoothing`` (10 urad) in windows, over
+``idle_smoothing`` (0.1 urad) in runs through the idle time: the rounding's
+tail is a faint spring across every open gap, harmless over a window but
+enough over a second of idling to float the rolls by a good part of their
+gaps (the width is a model parameter, so one compiled integrator does both).
 """
 
 from __future__ import annotations
@@ -72,9 +83,11 @@ __all__ = ["WINDOW_PARAMS", "Engine", "Setup", "State", "Layout", "FitOutcome", 
            "scan_ramp", "ramp_starts", "RAMP_GRID_S", "SHIFT_GRID_S"]
 
 #: Per-window nuisance parameters, in order.
-WINDOW_PARAMS = ("L0", "L1", "t_step", "rise", "frac", "slope")
+WINDOW_PARAMS = ("L0", "L1", "t_step", "rise", "frac", "slope", "history")
 
 _TOL_LOADED = 0.05  # an element carries load when |tau| > 5 % of the step
+_I_HISTORY = WINDOW_PARAMS.index("history")
+_I_FRAC = WINDOW_PARAMS.index("frac")
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +110,9 @@ class Engine:
         Element ids compared with data (output order of :func:`simulate_windows`).
     gapped : tuple of str
         Elements whose gap the mill file gives (free in every fit).
+    smoothing, idle_smoothing : float
+        Kink rounding widths in windows and in runs through the idle time, rad
+        (the driveline's ``smoothing`` parameter; see :func:`build_engine`).
     """
 
     mill: Mill
@@ -111,6 +127,7 @@ class Engine:
     statics: Any
     n_sub: int
     smoothing: float
+    idle_smoothing: float
     _cache: dict = field(default_factory=dict, repr=False)
 
     def candidate_index(self, key: str) -> int:
@@ -148,6 +165,7 @@ class Engine:
         """Mill-file gaps (fit convention), every candidate gated off at its neutral values."""
         drv = self.driveline
         p = drv.p_default.copy()
+        p[self.p_index("smoothing")] = self.smoothing
         for e in self.mill.elements:
             p[self.p_index(f"{e.id}.gap")] = e.gap
             p[self.p_index(f"{e.id}.gap_open")] = 0.0
@@ -159,7 +177,8 @@ class Engine:
 
 
 def build_engine(mill: Mill, candidates: Sequence[Any], *, dt: float, n_samples: int,
-                 n_sub: int = 1, smoothing: float = 1e-5, compile: bool = True) -> Engine:
+                 n_sub: int = 1, smoothing: float = 1e-5, idle_smoothing: float = 1e-7,
+                 compile: bool = True) -> Engine:
     """Build (and compile, once per mill and candidate set) the window model.
 
     Parameters
@@ -176,9 +195,16 @@ def build_engine(mill: Mill, candidates: Sequence[Any], *, dt: float, n_samples:
         RK4 steps per sample.
     smoothing : float
         g1 kink rounding width, rad.
+    idle_smoothing : float
+        Kink rounding width for runs through the idle time before a bite, rad.
+        The rounding's tail leaves a faint spring across every open gap (about
+        ``k w**2 / 4|d|``: 0.5 N*m for a spindle at 10 urad), harmless over a
+        window but enough over a second of idling to float the rolls by a good
+        part of their gaps, and so to move every impact of the next bite.  (A
+        tail-free rounding would do too, but the fits need the tail's gradient.)
     """
     cands = tuple(candidates)
-    drv = build_driveline(mill, ModelOptions(family=Family.G1, smoothing=smoothing,
+    drv = build_driveline(mill, ModelOptions(family=Family.G1, smoothing="param",
                                              effects=tuple(Gated(c, 0.0) for c in cands)))
     stepper = make_stepper(drv, interval=dt, n_sub=n_sub, chunk=n_samples - 1, compile=compile,
                            stage_inputs=True)
@@ -189,7 +215,8 @@ def build_engine(mill: Mill, candidates: Sequence[Any], *, dt: float, n_samples:
     gapped = tuple(e.id for e in mill.elements if e.gap > 0)
     return Engine(mill=mill, candidates=cands, driveline=drv, stepper=stepper, dt=dt,
                   n_samples=n_samples, measured=measured, gapped=gapped, y_index=y_index,
-                  statics=_statics_function(drv, mill), n_sub=n_sub, smoothing=smoothing)
+                  statics=_statics_function(drv, mill), n_sub=n_sub, smoothing=smoothing,
+                  idle_smoothing=idle_smoothing)
 
 
 def _statics_function(drv: Driveline, mill: Mill) -> Any:
@@ -366,14 +393,15 @@ def initial_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> n
     t0 = float(w.t[0])
     tau = lay["shares"] * L0
     idle = starts_idle(w)
-    frac = float(wp[4])
+    frac = float(wp[_I_FRAC])
     gaps = p[lay["gap_index"]]
     k_el = lay["k"]
+    shift = _open_shifts(engine, p, t0)
     if idle:
-        delta = -frac * gaps
+        delta = shift - frac * gaps
     else:
-        delta = np.where(tau > 0, tau / k_el, -gaps + tau / k_el)
-        delta = np.where(tau == 0.0, -frac * gaps, delta)
+        delta = shift + np.where(tau > 0, tau / k_el, -gaps + tau / k_el)
+        delta = np.where(tau == 0.0, shift - frac * gaps, delta)
     z = L0 / mill.motor.ki if mill.motor.ki else 0.0
     # absolute angles: the speed loop's integral z = -(motor angle) for a recording that
     # started at rest (roll-angle effects see it; a constant offset goes into their phase)
@@ -401,6 +429,26 @@ def initial_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> n
         x[:n] += off[:n]
         x[n:2 * n] += off[n:2 * n]
     return x
+
+
+def _open_shifts(engine: Engine, p: np.ndarray, t: float) -> np.ndarray:
+    """Per element, how far active candidates shift the gap's open part at ``t``, rad.
+
+    A swinging spindle gap (imbalance) moves both flanks: an element placed at
+    ``frac`` of its gap must be placed within the shifted gap, or it starts
+    pressed into a flank.  The roll angle's own offset (mrad) is neglected.
+    """
+    out = np.zeros(len(engine.mill.elements))
+    for c in engine.candidates:
+        if not hasattr(c, "open_shift"):
+            continue
+        g = float(p[engine.p_index(f"{c.key}.gate")])
+        if g == 0.0:
+            continue
+        a = float(p[engine.p_index(f"{c.key}.amplitude")])
+        ph = float(p[engine.p_index(f"{c.key}.phase")])
+        out[engine.mill.element_ids.index(c.location)] += g * c.open_shift(engine.mill, a, ph, t)
+    return out
 
 
 #: Candidates whose rest state under load differs from the contact solution.
@@ -492,6 +540,21 @@ def needs_history(engine: Engine, p: np.ndarray) -> bool:
                for c in engine.candidates)
 
 
+def can_use_history(engine: Engine, w: Window, p: np.ndarray) -> bool:
+    """Window ``w`` may start from the model's own run through the idle time before it."""
+    return w.history is not None and starts_idle(w) and needs_history(engine, p)
+
+
+def uses_history(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> bool:
+    """Window ``w`` with row ``wp`` starts from the simulated idle (else at rest at ``frac``).
+
+    The ``history`` column chooses (1 simulated, 0 at rest): an idle rattle is
+    sensitive (impacts), and where the simulation loses it the bite is better
+    started like any other model's, at rest somewhere in the gaps.
+    """
+    return can_use_history(engine, w, p) and float(wp[_I_HISTORY]) > 0.5
+
+
 def _run(engine: Engine, x0: np.ndarray, U: np.ndarray, p: np.ndarray, t0: float
          ) -> tuple[np.ndarray, np.ndarray]:
     """Chunks of the compiled integrator over stage loads ``U`` (n_intervals, 2*n_sub+1)."""
@@ -531,14 +594,16 @@ def _history_state(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) -> 
                   y=np.zeros((16, len(w.elements))), t_step=t_rel, kind="release",
                   level_before=before, level_after=after, bar=w.bar)
     wr = np.zeros_like(wp)
-    wr[:6] = [before, after, t_rel, rise, 0.0, 0.0]
+    wr[:6] = [before, after, t_rel, rise, 0.0, 0.0]  # a loaded release: no history
     x = initial_state(engine, fake, p, wr)
     T = stage_times(st, n_int + 1, t_pre)
     U = _load(fake, wr, T)
     idle = T >= t_rel + rise
     U[idle] = after  # the segmenter's idle level: the long idle run must not follow the
     # bite's fitted level (a rattle is sensitive, and the history would move with it)
-    X, _ = _run(engine, x, U, p, t_pre)
+    ph = p.copy()
+    ph[engine.p_index("smoothing")] = engine.idle_smoothing
+    X, _ = _run(engine, x, U, ph, t_pre)
     x0 = X[:, -1]
     if len(engine._cache) > 64:
         for k in [k for k in engine._cache if isinstance(k, tuple)]:
@@ -551,7 +616,7 @@ def simulate_window(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray) ->
     """Model torques of the measured elements over one window, shape (N, ny), N*m reduced."""
     st = engine.stepper
     N = w.n_samples
-    if w.history is not None and starts_idle(w) and needs_history(engine, p):
+    if uses_history(engine, w, p, wp):
         x0 = _history_state(engine, w, p, wp)
     else:
         x0 = initial_state(engine, w, p, wp)
@@ -676,22 +741,23 @@ class FitOutcome:
 
 
 def _window_bounds(w: Window, ref: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    lo = np.r_[-3 * ref, -3 * ref, w.t_step - 0.05, 2e-3, 0.0, -0.5 * ref,
+    lo = np.r_[-3 * ref, -3 * ref, w.t_step - 0.05, 2e-3, 0.0, -0.5 * ref, 0.0,
                np.full(n, -0.02), np.full(n, -3.0)]
-    hi = np.r_[3 * ref, 3 * ref, w.t_step + 0.05, 0.15, 1.0, 0.5 * ref,
+    hi = np.r_[3 * ref, 3 * ref, w.t_step + 0.05, 0.15, 1.0, 0.5 * ref, 1.0,
                np.full(n, 0.02), np.full(n, 3.0)]
-    sc = np.r_[0.05 * ref, 0.05 * ref, 0.005, 0.01, 0.3, 0.05 * ref,
+    sc = np.r_[0.05 * ref, 0.05 * ref, 0.005, 0.01, 0.3, 0.05 * ref, 1.0,
                np.full(n, 1e-3), np.full(n, 0.05)]
     return lo, hi, sc
 
 
 def _window_free(engine: Engine, w: Window, free_slope: bool, free_x0: bool,
                  history: bool) -> np.ndarray:
+    """Which entries of the window's row a fit moves (``history``: it starts from its idle run)."""
     n = len(engine.mill.masses)
     free = np.zeros(len(WINDOW_PARAMS) + 2 * n, dtype=bool)
     free[:4] = True
     idle = starts_idle(w)
-    free[4] = idle and not free_x0 and not (history and w.history is not None)
+    free[_I_FRAC] = idle and not free_x0 and not history
     free[5] = free_slope and w.kind == "bite"
     if idle and free_x0:
         free[len(WINDOW_PARAMS):] = True
@@ -709,8 +775,8 @@ def initial_window_params(engine: Engine, windows: Sequence[Window]) -> np.ndarr
     n = len(engine.mill.masses)
     W = np.zeros((len(windows), len(WINDOW_PARAMS) + 2 * n))
     for i, w in enumerate(windows):
-        W[i, :6] = [w.level_before, w.level_after, w.t_step, w.rise,
-                    1.0 if w.kind == "bite" else 0.0, 0.0]
+        W[i, :7] = [w.level_before, w.level_after, w.t_step, w.rise,
+                    1.0 if w.kind == "bite" else 0.0, 0.0, 1.0]
     return W
 
 
@@ -770,9 +836,9 @@ def fit(engine: Engine, windows: Sequence[Window], setup: Setup, start: State, *
     w_entries: list[tuple[int, int]] = []
     w_lo, w_hi, w_sc = [], [], []
     n_m = len(engine.mill.masses)
-    hist = needs_history(engine, p0)
     for i, w in enumerate(windows):
         lo, hi, sc = _window_bounds(w, ref, n_m)
+        hist = uses_history(engine, w, p0, start.W[i])
         for k in np.flatnonzero(_window_free(engine, w, free_slope, free_x0, hist)):
             w_entries.append((i, int(k)))
             w_lo.append(lo[k])
@@ -868,27 +934,38 @@ def scan_frac(engine: Engine, windows: Sequence[Window], state: State, *,
               scales: np.ndarray | None = None) -> State:
     """Start each bite from idle at the best of a few gap positions ``frac`` (others kept).
 
-    The window's current ``frac`` is among those tried, so the cost never rises.
+    Where the model runs through the idle time before a bite
+    (:func:`can_use_history`) that start is tried too.  The window's current
+    start is among those tried, so the cost never rises.  ``state.p`` must
+    have its gates applied.
     """
     if scales is None:
         scales = channel_scales(engine, windows)
     W = state.W.copy()
-    hist = needs_history(engine, state.p)
     for i, w in enumerate(windows):
-        if not starts_idle(w) or (hist and w.history is not None):
+        if not starts_idle(w):
             continue
         y = w.columns(engine.measured)
         best = None
-        values = tuple(dict.fromkeys((float(W[i, 4]),) + tuple(values)))
-        for v in values:
+        for h, v in _start_modes(engine, w, state.p, W[i], values):
             wp = W[i].copy()
-            wp[4] = v
+            wp[_I_HISTORY], wp[_I_FRAC] = h, v
             r = (simulate_window(engine, w, state.p, wp) - y) / scales
             c = float(np.sum(r ** 2))
             if best is None or c < best[0]:
-                best = (c, v)
-        W[i, 4] = best[1]
+                best = (c, h, v)
+        W[i, _I_HISTORY], W[i, _I_FRAC] = best[1], best[2]
     return State(p=state.p, W=W)
+
+
+def _start_modes(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray,
+                 fracs: Sequence[float]) -> list[tuple[float, float]]:
+    """``(history, frac)`` starts worth trying for a bite from idle, the row's own first."""
+    own = (1.0 if uses_history(engine, w, p, wp) else 0.0, float(wp[_I_FRAC]))
+    modes = [own] + [(0.0, float(f)) for f in fracs]
+    if can_use_history(engine, w, p):
+        modes.append((1.0, own[1]))
+    return list(dict.fromkeys(modes))
 
 
 #: Load-ramp durations :func:`ramp_starts` tries, s (about geometric, 4-60 ms: real mills
@@ -910,8 +987,9 @@ def ramp_starts(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray, *, k: 
     fit from a wrong duration stays in the wrong one.  So does one from a wrong
     instant, and the segmenter's ``t_step`` is that of the measured torque,
     which lags the load.  ``wp`` itself is among the rows tried; bites from
-    idle also try gap positions ``frac`` (0 drive flank, 1 back flank) unless
-    their start is simulated (``needs_history``).
+    idle also try gap positions ``frac`` (0 drive flank, 1 back flank) and,
+    where the model runs through the idle time before them
+    (:func:`can_use_history`), that simulated start.
 
     Parameters
     ----------
@@ -935,27 +1013,44 @@ def ramp_starts(engine: Engine, w: Window, p: np.ndarray, wp: np.ndarray, *, k: 
     Returns
     -------
     list of ndarray
+        The ``k`` best (each with another ramp duration), then, for a window that
+        can start from its simulated idle, the best row of the start kind
+        (simulated or at rest) missing from them.
     """
     if scales is None:
         scales = channel_scales(engine, [w])
-    i_rise, i_frac = WINDOW_PARAMS.index("rise"), WINDOW_PARAMS.index("frac")
+    i_rise = WINDOW_PARAMS.index("rise")
     y = w.columns(engine.measured)
-    scan_f = starts_idle(w) and not (w.history is not None and needs_history(engine, p))
-    fs = tuple(dict.fromkeys((float(wp[i_frac]),) + (tuple(fracs) if scan_f else ())))
+    modes = (_start_modes(engine, w, p, wp, fracs) if starts_idle(w)
+             else [(float(wp[_I_HISTORY]), float(wp[_I_FRAC]))])
     i_t = WINDOW_PARAMS.index("t_step")
     rs = tuple(dict.fromkeys((float(wp[i_rise]),) + tuple(rises)))
     ts = tuple(dict.fromkeys(
         (float(wp[i_t]),) + tuple(w.t_step + d for d in shifts if abs(d) < 0.05)))
-    best: dict[float, tuple[float, np.ndarray]] = {}
+    # best row per (start kind, ramp duration): a simulated idle start and one at rest
+    # are different basins, so each kind keeps its best row among those returned
+    best: dict[tuple[bool, float], tuple[float, np.ndarray]] = {}
     for r in rs:
         for t in ts:
-            for f in fs:
+            for h, f in modes:
                 row = np.array(wp, dtype=float)
-                row[i_rise], row[i_t], row[i_frac] = r, t, f
+                row[i_rise], row[i_t], row[_I_HISTORY], row[_I_FRAC] = r, t, h, f
                 c = float(np.sum(((simulate_window(engine, w, p, row) - y) / scales) ** 2))
-                if r not in best or c < best[r][0]:
-                    best[r] = (c, row)
-    return [row for _, row in sorted(best.values(), key=lambda cr: cr[0])[:k]]
+                key = (uses_history(engine, w, p, row), r)
+                if key not in best or c < best[key][0]:
+                    best[key] = (c, row)
+    ranked = sorted(best.items(), key=lambda kv: kv[1][0])
+    out, rises_kept = [], set()
+    for (_, r), cr in ranked:  # the k best, each with another ramp duration
+        if r not in rises_kept and len(out) < k:
+            out.append(cr)
+            rises_kept.add(r)
+    kinds = {uses_history(engine, w, p, row) for _, row in out}
+    for (h, _), cr in ranked:  # and the best of a start kind not among them
+        if h not in kinds:
+            out.append(cr)
+            kinds.add(h)
+    return [row for _, row in out]
 
 
 def scan_ramp(engine: Engine, windows: Sequence[Window], state: State, *,

@@ -2,8 +2,9 @@
 
 :func:`discrepancy` runs, on the transient windows of a recording:
 
-1. **Cross-validation folds across bars**: bars alternate between two folds;
-   each fold's model is fitted on its own bars and judged on the other's.
+1. **Cross-validation folds across bars** (:func:`fold_bars`): bars alternate
+   between two folds (three bars: one fold per bar, so that every fold trains
+   on two); each fold's model is fitted on the other bars and judged on its own.
 2. **Baseline**: the model the mill file describes (gaps identified) fitted on
    each fold (:mod:`.engine`), its residuals on the *held-out* bars analysed by
    window, transient phase, frequency, load level and roll angle
@@ -45,15 +46,15 @@ import numpy as np
 from ..description import Mill
 from ..errors import FitError
 from ..model.effects import make_effect
-from .engine import (Engine, FitOutcome, Setup, State, build_engine, channel_scales, fit,
-                     initial_window_params, nrmse, ramp_starts, scan_frac,
+from .engine import (WINDOW_PARAMS, Engine, FitOutcome, Setup, State, build_engine,
+                     channel_scales, fit, initial_window_params, nrmse, ramp_starts, scan_frac,
                      simulate_window)
 from .residuals import ResidualReport, analyse_residuals
 from .signatures import (CandidateScore, model_candidates, peak_torque, rescore_on_grid,
                          score_candidates, start_grid, start_state)
 from .windows import Window, as_windows, windows_from_recording
 
-__all__ = ["DecisionRule", "Refit", "DiscrepancyResult", "discrepancy"]
+__all__ = ["DecisionRule", "Refit", "DiscrepancyResult", "discrepancy", "fold_bars"]
 
 
 @dataclass(frozen=True)
@@ -270,7 +271,7 @@ def _fit_train(engine: Engine, windows: Sequence[Window], setup: Setup, start: S
     # where bites start in their gaps is nearly discrete (drive or back flanks): look again
     # with the fitted gaps and refit if another position is better
     again = scan_frac(engine, windows, out.state, scales=scales)
-    if not np.array_equal(again.W[:, 4], out.state.W[:, 4]):
+    if not np.array_equal(again.W[:, [4, 6]], out.state.W[:, [4, 6]]):  # frac, history
         out2 = fit(engine, windows, setup, again, max_nfev=max_nfev, scales=scales,
                    keep_jac=keep_jac)
         if out2.cost < out.cost:
@@ -384,13 +385,13 @@ def discrepancy(data: Any, mill: Mill, *, rule: DecisionRule = DecisionRule(),
     if len(bars) < 2:
         raise FitError(f"the discrepancy workflow holds whole bars out, so it needs windows of "
                        f"at least two bars. Got {len(bars)} bar(s) ({len(windows)} windows).")
-    groups = (tuple(bars[0::2]), tuple(bars[1::2]))
+    groups = fold_bars(bars)
     folds = []
     for g in groups:
-        train = tuple(i for i, w in enumerate(windows) if w.bar in g)
-        test = tuple(i for i, w in enumerate(windows) if w.bar not in g)
+        train = tuple(i for i, w in enumerate(windows) if w.bar not in g)
+        test = tuple(i for i, w in enumerate(windows) if w.bar in g)
         folds.append(_Fold(train=train, test=test))
-    say(f"{len(windows)} windows of {len(bars)} bars; folds by bar {groups}")
+    say(f"{len(windows)} windows of {len(bars)} bars; held-out bars per fold {groups}")
 
     n = max(w.n_samples for w in windows)
     dt = windows[0].dt
@@ -468,6 +469,28 @@ def discrepancy(data: Any, mill: Mill, *, rule: DecisionRule = DecisionRule(),
                              seconds=time.perf_counter() - t_start,
                              sims_before=tuple(sorted(sims_before.items())),
                              measured=base_engine.measured)
+
+
+def fold_bars(bars: Sequence[int]) -> tuple[tuple[int, ...], ...]:
+    """The bars each cross-validation fold holds out (every bar exactly once).
+
+    Bars alternate between two folds, so that each fold's model learns from
+    bars spread over the recording; with three bars, each is held out on its
+    own instead (three folds), so that every fold still trains on two bars:
+    a single bar pins down little (one bite: one roll angle at bite, one load).
+
+    Parameters
+    ----------
+    bars : sequence of int
+        The recording's bars, in time order (at least two).
+
+    Returns
+    -------
+    tuple of tuple of int
+    """
+    bars = tuple(bars)
+    k = 3 if len(bars) == 3 else 2
+    return tuple(bars[i::k] for i in range(k))
 
 
 def _moved_outcome(out: FitOutcome, src: Engine, dst: Engine) -> FitOutcome:
@@ -566,11 +589,15 @@ def _grid_refine(engine: Engine, setup: Setup, windows: Sequence[Window], start:
     ip = engine.p_index(f"{key}.phase")
     gap = max(engine.mill.element(key.split("@", 1)[1]).gap, 1e-3)
     hold = Setup.baseline(engine).with_active(setup.active)
+    W_start = start.W.copy()
+    W_start[:, WINDOW_PARAMS.index("history")] = 1.0  # rows fitted for the baseline start at rest
 
     def cost_at(a: float, ph: float) -> tuple[float, np.ndarray]:
-        p = start.p.copy()
+        p = hold.apply_gates(engine, start.p)
         p[ia], p[ip] = a, ph
-        out = fit(engine, windows, hold, State(p=p, W=start.W), free_shared=False, max_nfev=4,
+        # each bite after a release from its simulated idle or at rest, whichever fits
+        st = scan_frac(engine, windows, State(p=p, W=W_start), scales=scales)
+        out = fit(engine, windows, hold, st, free_shared=False, max_nfev=4,
                   scales=scales, ftol=1e-3)
         return out.cost, out.state.W
 
@@ -621,13 +648,24 @@ def _refit(mill: Mill, cand: CandidateScore, folds: list, windows: Sequence[Wind
         st = _best_start(engine, setup, tw, fd.base.state.moved(base_engine, engine),
                          start_cand, scales=scales, base_fit=fd.base, base_engine=base_engine)
         if rough:
-            # a rough cost (idle rattle): search the effect's parameters on a grid first
+            # a rough cost (idle rattle): search the effect's parameters on a grid first,
+            # each point with its loads fitted
             st = _grid_refine(engine, setup, tw, st, key, scales=scales)
         # the loads first: the baseline's ramps and gap positions were fitted around the
         # missing effect, and from them the joint fit can stall far from the candidate's
         # optimum (a knee slides along a narrow valley of the loaded stiffness)
         out = _fit_train(engine, tw, setup, st, scales=scales, max_nfev=max_nfev)
-        if not rough:
+        if rough:
+            # the baseline bends its gaps around a swinging gap (a rattle it cannot make),
+            # and from its gaps the effect looks worse than it is: again from the mill
+            # file's gaps
+            moved = fd.base.state.moved(base_engine, engine)
+            fresh = _grid_refine(engine, setup, tw, State(p=engine.base_params(), W=moved.W),
+                                 key, scales=scales)
+            alt = _fit_train(engine, tw, setup, fresh, scales=scales, max_nfev=max_nfev)
+            if alt.cost < out.cost:
+                out = alt
+        else:
             # the baseline may have bent its gaps and gap positions around the missing
             # effect, and the candidate then settles next to them: start afresh as the
             # baseline did, from the mill file's gaps and the best grid point

@@ -345,6 +345,24 @@ class SpindleImbalance(_Base):
         return (ParamSpec("amplitude", 0.0, 0.02, 5e-4),
                 ParamSpec("phase", -4 * math.pi, 4 * math.pi, 1.0))
 
+    def open_shift(self, mill: Mill, amplitude: float, phase: float, t: float,
+                   theta_to: float = 0.0) -> float:
+        """The shift of the open part of the gap at time ``t``, rad (as :meth:`terms`).
+
+        Parameters
+        ----------
+        mill : Mill
+        amplitude, phase : float
+            The effect's parameters (rad).
+        t : float
+            Time, s from the recording's start.
+        theta_to : float
+            Angle of the roll-side mass relative to nominal rotation, rad (reduced).
+        """
+        e = mill.element(self.location)
+        phi = (mill.motor_speed * t + theta_to) / e.ratio
+        return float(amplitude * math.sin(2.0 * phi + phase))
+
     def roll_speed_hz(self, mill: Mill) -> float:
         """Physical roll speed of the spindle's shaft, revolutions per second."""
         return mill.motor_speed / (2 * math.pi) / mill.element(self.location).ratio
