@@ -2,6 +2,7 @@
 #   make demo   -- simulate a small campaign, fit it into a results store, write the report
 #   make test   -- run the whole test suite (slow tests included)
 # Both create or reuse the virtual environment in .venv and install what they need.
+# Tests run with OMP_NUM_THREADS=1: two xdist workers on two cores, no thread oversubscription.
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -24,10 +25,10 @@ demo: $(STAMP)
 	$(PY) -m pipelines.demo
 
 test: $(STAMP)
-	$(PY) -m pytest -n $(JOBS) -q
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) -q
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -n $(JOBS) -q -m "not slow"
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) -q -m "not slow"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks
