@@ -10,8 +10,8 @@ import pytest
 
 from ident import Element, Load, Mass, Mill, Motor
 from ident.cli import main
-from ident.model.linear import (damping_matrix, incidence, mass_matrix, natural_modes,
-                                stiffness_matrix)
+from ident.model.linear import (angles_from_deflections, damping_matrix, incidence,
+                                mass_matrix, natural_modes, stiffness_matrix)
 
 #: Seed section 2: "The torsional natural frequencies, calculated on investigated rolling
 #: stand driveline, were as following: 12, 15, 20, 34, 45 and 81 Hz."
@@ -154,3 +154,13 @@ def test_cli_missing_mill_file_exits_2(tmp_path, capsys):
     assert main(["frequencies", "--mill", str(missing)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(missing) in err and "not found" in err
+
+
+def test_angles_from_deflections_inverts_the_incidence(mill):
+    """On the (tree-shaped) shipped stand, D @ angles(delta) = delta, the motor at zero."""
+    rng = np.random.default_rng(4)
+    delta = rng.normal(scale=1e-3, size=len(mill.elements))
+    im = mill.mass_index(mill.motor.mass) if hasattr(mill.motor, "mass") else 0
+    theta = angles_from_deflections(mill, delta, im)
+    assert theta[im] == 0.0
+    np.testing.assert_allclose(incidence(mill) @ theta, delta, atol=1e-15)

@@ -76,6 +76,7 @@ from ..errors import FitError
 from ..model.dynamics import Driveline, Family, ModelOptions, build_driveline
 from ..model.effects import Gated
 from ..model.integrate import Stepper, make_stepper, stage_times
+from ..model.linear import angles_from_deflections
 from .windows import Window
 
 __all__ = ["WINDOW_PARAMS", "Engine", "Setup", "State", "Layout", "FitOutcome", "build_engine",
@@ -376,7 +377,8 @@ def _layout(engine: Engine) -> dict:
         im = mill.mass_index(mill.motor.mass)
         ne = len(mill.elements)
         # angles are linear in the deflections (spanning tree, motor angle 0)
-        M = np.stack([_angles(mill, np.eye(ne)[j], im) for j in range(ne)], axis=1)
+        M = np.stack([angles_from_deflections(mill, np.eye(ne)[j], im) for j in range(ne)],
+                     axis=1)
         got = engine._cache["layout"] = {
             "n": n, "im": im, "angles": M, "k": np.array([e.k for e in mill.elements]),
             "gap_index": _gap_index(engine), "shares": _shares(engine)}
@@ -513,25 +515,6 @@ def _shares(engine: Engine) -> np.ndarray:
         got = np.array([fr[e.id] for e in engine.mill.elements])
         engine._cache["shares"] = got
     return got
-
-
-def _angles(mill: Mill, delta: np.ndarray, im: int) -> np.ndarray:
-    """Angles with ``theta[im] = 0`` and ``D theta = delta`` along a spanning tree."""
-    n = len(mill.masses)
-    theta = np.full(n, np.nan)
-    theta[im] = 0.0
-    changed = True
-    while changed:
-        changed = False
-        for j, e in enumerate(mill.elements):
-            a, b = mill.mass_index(e.from_), mill.mass_index(e.to)
-            if np.isnan(theta[b]) and not np.isnan(theta[a]):
-                theta[b] = theta[a] - delta[j]
-                changed = True
-            elif np.isnan(theta[a]) and not np.isnan(theta[b]):
-                theta[a] = theta[b] + delta[j]
-                changed = True
-    return np.nan_to_num(theta)
 
 
 def needs_history(engine: Engine, p: np.ndarray) -> bool:

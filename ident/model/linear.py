@@ -15,8 +15,8 @@ import scipy.linalg
 
 from ..description import Mill
 
-__all__ = ["incidence", "mass_matrix", "stiffness_matrix", "damping_matrix", "LinearModes",
-           "natural_modes"]
+__all__ = ["incidence", "angles_from_deflections", "mass_matrix", "stiffness_matrix",
+           "damping_matrix", "LinearModes", "natural_modes"]
 
 
 def incidence(mill: Mill) -> np.ndarray:
@@ -35,6 +35,40 @@ def incidence(mill: Mill) -> np.ndarray:
         D[i, mill.mass_index(e.from_)] = 1.0
         D[i, mill.mass_index(e.to)] = -1.0
     return D
+
+
+def angles_from_deflections(mill: Mill, delta: np.ndarray, im: int) -> np.ndarray:
+    """Angles with ``theta[im] = 0`` and ``D @ theta = delta`` along a spanning tree.
+
+    Parameters
+    ----------
+    mill : Mill
+    delta : ndarray
+        One deflection per element (rad), in the mill's element order.
+    im : int
+        Index of the mass whose angle is the reference (zero), usually the motor.
+
+    Returns
+    -------
+    ndarray
+        One angle per mass; on a closed loop the deflections of the elements
+        outside the spanning tree are implied, not imposed.
+    """
+    n = len(mill.masses)
+    theta = np.full(n, np.nan)
+    theta[im] = 0.0
+    changed = True
+    while changed:
+        changed = False
+        for j, e in enumerate(mill.elements):
+            a, b = mill.mass_index(e.from_), mill.mass_index(e.to)
+            if np.isnan(theta[b]) and not np.isnan(theta[a]):
+                theta[b] = theta[a] - delta[j]
+                changed = True
+            elif np.isnan(theta[a]) and not np.isnan(theta[b]):
+                theta[a] = theta[b] + delta[j]
+                changed = True
+    return np.nan_to_num(theta)
 
 
 def mass_matrix(mill: Mill) -> np.ndarray:

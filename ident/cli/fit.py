@@ -1,0 +1,147 @@
+"""``ident fit REC --mill M [--family g1|g2|g3|g4] [--out F] [--quiet]``.
+
+Reads the recording, finds its load-step transients (``ident.segment``), cuts
+the fit windows around them (:func:`ident.fit.windows_from_recording`) and
+identifies every element's gap with :func:`ident.fit.fit_gaps` (CasADi direct
+collocation by default).  The JSON is cli.md's ``fit`` document --
+``mill``, ``family``, ``elements`` (every element of the mill file: ``gap``,
+``gap_ci95``, ``gap_open``, ``gap_mm`` where the element gives a radius,
+``params``), ``metrics`` (``nrmse``, ``nrmse_linear``) and ``solver``
+(``status``, ``iterations``, ``seconds``) -- plus the extra keys of
+:meth:`ident.fit.FitResult.to_dict` and ``recording``, ``windows_used`` and
+``quality`` (the read's findings).
+
+Exit codes
+----------
+0
+    The fit converged.
+1
+    The fit ran but is not an identification: no start reached IPOPT's (or
+    least squares') convergence test, or the converged fit's residuals stay
+    above the sensor noise the data show (``metrics.noise_ratio`` above
+    :data:`ident.fit.NOISE_RATIO_MAX`: a local minimum, or an effect the
+    model lacks).  The JSON is still written, with the honest
+    ``solver.status``, ``solver.converged`` and
+    ``metrics.reached_noise_floor``, and one line on stderr says why its
+    numbers are not an identification.  (Also any internal failure, as for
+    every subcommand.)
+2
+    Bad input: unreadable recording, channels that contradict the mill file,
+    no usable transient, bad option values -- one line on stderr naming the
+    file, channel or key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from typing import Any
+
+from ..errors import ConvergenceWarning, FitError
+from ..fit import Collocation, SingleShooting, fit_gaps, windows_from_recording
+from ..io.readers import read_recording
+from ..segment import segment_transients
+from .common import add_common, load_mill_arg, write_json
+
+#: Exit code of a fit that ran but did not converge.
+EXIT_NOT_CONVERGED = 1
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "fit", help="identify gaps and smoothing parameters (CasADi collocation)",
+        description="Identify every element's gap (total and open part) and the stiffness "
+                    "family's smoothing parameters from the load-step transients of a "
+                    "recording, by CasADi direct collocation solved with IPOPT (or single "
+                    "shooting with --method shooting), with 95 %% intervals.  Exit 1 when "
+                    "the fit does not converge (JSON still written, status says so).")
+    p.add_argument("recording", metavar="REC", help="recording (.mcap or .csv)")
+    add_common(p)
+    p.add_argument("--family", default="g1", choices=["g1", "g2", "g3", "g4"],
+                   help="stiffness law (default g1: explicit gaps)")
+    p.add_argument("--set", action="append", metavar="ID.KEY=VALUE",
+                   help="override a mill-file value, e.g. C46.gap=0.006 (the start) "
+                        "(repeatable)")
+    p.add_argument("--method", default="collocation", choices=["collocation", "shooting"],
+                   help="direct collocation (default) or single shooting")
+    p.add_argument("--starts", type=int, default=1, metavar="N",
+                   help="starts: the mill file's gaps, then N-1 random ones (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random starts")
+    p.add_argument("--max-transients", type=int, default=None, metavar="N",
+                   help="fit at most N transient windows (default: the fit's default, 4)")
+    p.add_argument("--window-s", type=float, default=None, metavar="S",
+                   help="length of each transient window, s (default 0.3)")
+    p.add_argument("--max-iter", type=int, default=None, metavar="N",
+                   help="solver iterations per continuation stage (IPOPT max_iter / "
+                        "least_squares max_nfev)")
+    p.add_argument("--no-uncertainty", action="store_true",
+                   help="skip standard errors and intervals (faster)")
+
+
+def _method(args: argparse.Namespace) -> Collocation | SingleShooting:
+    if args.max_iter is not None and args.max_iter < 1:
+        raise FitError(f"--max-iter must be at least 1. Got {args.max_iter}.")
+    if args.method == "shooting":
+        return SingleShooting() if args.max_iter is None else SingleShooting(
+            max_nfev=args.max_iter)
+    return Collocation() if args.max_iter is None else Collocation(max_iter=args.max_iter)
+
+
+def _windows_kw(args: argparse.Namespace) -> dict[str, Any]:
+    kw: dict[str, Any] = {}
+    if args.max_transients is not None:
+        if args.max_transients < 1:
+            raise FitError(f"--max-transients must be at least 1. Got {args.max_transients}.")
+        kw["max_windows"] = args.max_transients
+    if args.window_s is not None:
+        if not args.window_s > 0:
+            raise FitError(f"--window-s must be positive. Got {args.window_s}.")
+        kw["window_s"] = args.window_s
+        kw["min_s"] = min(0.25, 0.5 * args.window_s)
+    return kw
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.starts < 1:
+        raise FitError(f"--starts must be at least 1. Got {args.starts}.")
+    method = _method(args)
+    wkw = _windows_kw(args)
+    mill = load_mill_arg(args)
+    rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
+    segments = segment_transients(rec, mill)
+    if not segments:
+        raise FitError(f"{args.recording}: no load-step transient found; a fit needs at "
+                       "least one bite or release")
+    windows = windows_from_recording(rec, mill, segments, **wkw)
+    if not args.quiet:
+        print(f"ident fit: {len(segments)} transients, fitting {len(windows)} windows of "
+              f"{windows[0].n_samples} samples ({method.name}, {args.family})", file=sys.stderr)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # reported below, once
+        result = fit_gaps(mill, windows, family=args.family, method=method,
+                          n_starts=args.starts, random_state=args.seed,
+                          uncertainty=not args.no_uncertainty, progress=not args.quiet)
+    doc = result.to_dict()
+    doc["recording"] = str(args.recording)
+    doc["windows_used"] = [w.label for w in windows]
+    doc["quality"] = [i.to_dict() for i in rec.issues]
+    write_json(doc, args.out)
+    if not args.quiet:
+        for w in result.warnings:
+            print(f"ident fit: warning: {w}", file=sys.stderr)
+        print(f"ident fit: {result.solver.status} after {result.solver.iterations} iterations, "
+              f"{result.solver.seconds:.1f} s; nrmse {result.nrmse:.4f} (linear "
+              f"{result.nrmse_linear:.4f})", file=sys.stderr)
+    if not result.converged:
+        print(f"ident fit: error: the {result.solver.method} fit did not converge (status "
+              f"{result.solver.status!r}); the reported gaps are not an identification",
+              file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    if not result.reached_noise_floor:
+        print(f"ident fit: error: the fit converged but its residuals stay "
+              f"{result.noise_ratio:.2f} times the sensor noise's variance (a local minimum or "
+              f"a missing effect; try --starts 4); the reported gaps are not an identification",
+              file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    return 0

@@ -1,0 +1,570 @@
+"""``fit_gaps``: identify gaps (and smoothing parameters) from transient windows.
+
+Steps (``ident fit``, cli.md):
+
+1. **Linear baseline** -- the same windows fitted with every gap closed
+   (g1, gaps fixed at 0): per-window loads and initial states, and
+   ``nrmse_linear``, the reference the seed compares against (section 2).
+2. **Starts** -- the mill file's designed gaps (at least ``min_start_gap``),
+   then ``n_starts - 1`` random gap vectors (log-uniform, ``random_state``) or
+   the caller's ``starts``; each takes the baseline's loads and speeds, its
+   deflections moved into the start's gaps.
+3. **Settle** -- the loads and initial states alone, every shared parameter
+   held at the start (``method.settle``): a start's gaps are often wrong by
+   millimetres, and freeing everything at once lets the gaps explain wrong
+   initial positions inside the gaps.
+4. **Solve** each start with the strategy (``Collocation`` by default):
+   continuation on the fitted horizon after each window's step (the first
+   swings across the gaps are smooth in the gaps, the later rattle is not),
+   then on the smoothing width, warm-started throughout; keep the lowest cost
+   among converged starts and report which won.
+5. **Assess** the winner (:func:`assess`): sandwich covariance with every
+   nuisance parameter free (:mod:`ident.fit.uncertainty`); a gap no window
+   traverses (drive flank and back flank in one window) or no torque sees is
+   flagged, never reported with a confident interval; residuals above the
+   sensor noise (:data:`~ident.fit.result.NOISE_RATIO_MAX`) mark a local
+   minimum and nothing is reported as identified.
+
+Cost (2-core box, ``benchmarks/bench_fit.py``): a recording's four 0.3 s
+windows (two bites, two releases) take 45-175 s CPU, most of it in the
+horizon continuation (before: four 0.6 s windows, 73-80 s).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+import warnings
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..description import Mill
+from ..errors import ConvergenceWarning, FitError
+from ..model.dynamics import Family
+from ..model.linear import incidence
+from .collocation import Collocation
+from ..model.linear import angles_from_deflections
+from .model import FitModel, build_fit_model
+from .problem import Estimate, Problem, SolveInfo, initial_estimate, make_problem
+from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
+from .shooting import SingleShooting
+from .uncertainty import Z95, Covariance, collocation_sensitivity, covariance, noise_floor, \
+    shooting_sensitivity
+from .windows import FitWindow
+
+__all__ = ["fit_gaps", "assess", "Assessment"]
+
+
+
+def _progress(enabled: bool, total: int, desc: str) -> Any:
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover
+        return None
+    return tqdm(total=total, desc=desc, file=sys.stderr, leave=False)
+
+
+def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
+             family: Family | str = "g1", method: Collocation | SingleShooting | None = None,
+             starts: Sequence[dict[str, float]] | None = None, n_starts: int = 1,
+             random_state: int | np.random.Generator | None = 0, min_start_gap: float = 5e-4,
+             gap_max: float | None = None, open_frac: float = 0.5,
+             fixed: dict[str, float] | None = None, effects: Sequence = (),
+             uncertainty: bool = True, progress: bool = False) -> FitResult:
+    """Identify every element's gap from measured transient windows.
+
+    Parameters
+    ----------
+    mill : Mill
+    windows : FitWindow or sequence of FitWindow
+        Uniformly sampled reduced torques of the mill's torque channels around
+        load steps (:func:`ident.fit.windows_from_recording`), one sample rate.
+        Bites show the open part of each gap, releases (the unloading swings
+        every element across its gap) the total gap: fit both.
+    family : {"g1", "g2", "g3", "g4"}
+        Stiffness law (seed section 1.2).  g1 (default) fits explicit gaps with
+        continuation on the kink rounding; g2 fits ``a1, a2, a3`` (monotone,
+        ``3 a1 a3 >= a2**2``), g3/g4 ``a0, sigma``; their ``gap`` is the
+        family's equivalent gap (:meth:`FitModel.equivalent_gap`).
+    method : Collocation or SingleShooting
+        Strategy; default ``Collocation()`` (Radau degree 3).
+    starts : sequence of dict, optional
+        Initial gaps ``{"C46": 0.004, ...}`` (rad; missing elements take the
+        mill file's); overrides ``n_starts``.
+    n_starts : int
+        Number of starts: the designed gaps, then random ones.
+    random_state : int or Generator or None
+        Seed of the random starts.
+    min_start_gap : float
+        Smallest starting gap, rad (a start at a closed gap sits on its bound).
+    gap_max : float, optional
+        Upper bound of every gap, rad (default 0.03).
+    open_frac : float
+        Where an unloaded element starts in its gap (fraction from the drive-side contact).
+    fixed : dict, optional
+        Shared parameters held at a value, e.g. ``{"C23.gap": 0.0005}``.
+    effects : sequence of Effect
+        Extra model terms (discrepancy workflow), parameters at their defaults.
+    uncertainty : bool
+        Compute standard errors and intervals.
+    progress : bool
+        Progress bar on stderr.
+
+    Returns
+    -------
+    FitResult
+        Always; ``result.converged`` is False (with a ConvergenceWarning) when
+        no start converged -- :meth:`FitResult.raise_if_failed` turns that
+        into a :class:`~ident.errors.FitError`.
+
+    Raises
+    ------
+    FitError
+        Bad input: no windows, mismatched channels or rates, unknown family,
+        unknown element in ``starts`` or ``fixed``.
+    """
+    t_all = time.perf_counter()
+    if isinstance(windows, FitWindow):
+        windows = (windows,)
+    windows = tuple(windows)
+    try:
+        family = Family(family)
+    except ValueError:
+        raise FitError(f"family must be one of g1, g2, g3, g4. Got {family!r}.") from None
+    method = Collocation() if method is None else method
+    if not isinstance(method, (Collocation, SingleShooting)):
+        raise FitError(f"method must be Collocation(...) or SingleShooting(...). "
+                       f"Got {type(method).__name__}.")
+    kw = {} if gap_max is None else {"gap_max": gap_max}
+    model = build_fit_model(mill, family=family, effects=effects, **kw)
+    problem = make_problem(model, windows)
+    for dct, what in ((starts or [], "starts"), ([fixed] if fixed else [], "fixed")):
+        for d in dct:
+            for k in d:
+                eid = k.split(".")[0]
+                if eid not in mill.element_ids:
+                    raise FitError(f"{what}: unknown element {eid!r}; the mill has "
+                                   f"{list(mill.element_ids)}.")
+    build_s = 0.0
+
+    # ---- 1. linear baseline -------------------------------------------------------------
+    bar = _progress(progress, 2 + max(n_starts, len(starts or [])), f"fit {mill.name}")
+    lin_model = model if family is Family.G1 else build_fit_model(mill, family=Family.G1,
+                                                                   effects=effects, **kw)
+    lin_problem = make_problem(lin_model, windows).with_free(
+        np.zeros(lin_model.n_shared, dtype=bool))
+    lin_start = initial_estimate(lin_problem, np.zeros(lin_model.n_shared), open_frac=open_frac)
+    lin_est, lin_info = method.solve(lin_problem, lin_start, widths=(_final_width(method),),
+                                     **_no_horizons(method))
+    build_s += lin_info.build_seconds
+    r_lin = _residuals(method, lin_problem, lin_est)
+    nrmse_lin_ch = _nrmse_channels(r_lin, model.ny)
+    if bar:
+        bar.update(1)
+
+    # ---- 2./3. starts ---------------------------------------------------------------------
+    free = np.ones(model.n_shared, dtype=bool)
+    fixed_vals: dict[int, float] = {}
+    for k, v in (fixed or {}).items():
+        if k not in model.shared_names:
+            raise FitError(f"fixed: {k!r} is not a parameter of the {family.value} fit; "
+                           f"expected one of {list(model.shared_names)}.")
+        j = model.shared_names.index(k)
+        free[j] = False
+        fixed_vals[j] = float(v)
+    problem = problem.with_free(free)
+    start_vecs = _start_vectors(model, starts, n_starts, random_state, min_start_gap)
+    for j, v in fixed_vals.items():
+        for s in start_vecs:
+            s[j] = v
+    runs = []
+    held = problem.with_free(np.zeros(model.n_shared, dtype=bool))
+    for k, sv in enumerate(start_vecs):
+        est0 = _start_from_baseline(problem, lin_est, sv, open_frac)
+        try:
+            settle_info = None
+            if method.settle:
+                est0, settle_info = method.solve(held, est0, widths=method.settle,
+                                                 **_no_horizons(method))
+                build_s += settle_info.build_seconds
+            est, info = method.solve(problem, est0)
+            if settle_info is not None:
+                info = replace(info, iterations=info.iterations + settle_info.iterations,
+                               seconds=info.seconds + settle_info.seconds,
+                               stages=tuple(replace(s, status=f"settle: {s.status}")
+                                            for s in settle_info.stages) + info.stages)
+        except RuntimeError as exc:  # solver crashed on this start
+            info = SolveInfo(method=method.name, status=f"Error: {exc}"[:200], success=False,
+                             iterations=0, seconds=0.0, cost=math.inf)
+            est = est0
+        build_s += info.build_seconds
+        runs.append((k, sv, est, info))
+        if bar:
+            bar.update(1)
+    ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
+    pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
+    k_best, sv_best, est, info = min(pool, key=lambda r: r[3].cost)
+    converged = bool(ok)
+    warns: list[str] = []
+    if not converged:
+        msg = (f"no start of the {method.name} fit converged (best: {info.status}); the "
+               "reported numbers are not an identification")
+        warns.append(msg)
+        warnings.warn(msg, ConvergenceWarning, stacklevel=2)
+
+    judge: Collocation | SingleShooting = method
+
+    # ---- 4. uncertainty and report --------------------------------------------------------
+    if bar:
+        bar.update(1)
+        bar.close()
+    a = assess(problem, judge, est, uncertainty=uncertainty, converged=converged)
+    r_fit, cov, elements, ratio = a.residuals, a.covariance, a.elements, a.noise_ratio
+    warns += list(a.warnings)
+    nrmse_ch = _nrmse_channels(r_fit, model.ny)
+    starts_rep = tuple({"gaps": _gap_dict(model, sv), "cost": _fl(i.cost), "status": i.status,
+                        "converged": bool(i.success), "iterations": int(i.iterations),
+                        "seconds": _fl(i.seconds)} for (_, sv, _, i) in runs)
+    solver = SolverReport(
+        status=info.status, converged=converged, iterations=info.iterations,
+        seconds=time.perf_counter() - t_all, method=method.name, start=k_best,
+        starts=starts_rep,
+        stages=tuple({"width": s.width, "status": s.status, "iterations": s.iterations,
+                      "seconds": _fl(s.seconds), "cost": _fl(s.cost)} for s in info.stages),
+        build_seconds=build_s, nlp=dict(info.nlp))
+    noise = {}
+    if cov is not None:
+        noise = {eid: {"sigma": float(cov.sigma[c] * problem.y_scale[c]),
+                       "long_run_factor": float(cov.inflation[c])}
+                 for c, eid in enumerate(model.measured)}
+    return FitResult(
+        mill=mill.name, family=family.value, elements=elements,
+        nrmse=float(np.mean(list(nrmse_ch.values()))) if nrmse_ch else math.nan,
+        nrmse_linear=float(np.mean(list(nrmse_lin_ch.values()))) if nrmse_lin_ch else math.nan,
+        nrmse_channels={model.measured[c]: v for c, v in nrmse_ch.items()},
+        nrmse_linear_channels={model.measured[c]: v for c, v in nrmse_lin_ch.items()},
+        solver=solver, windows=_window_report(problem, est, elements), noise_ratio=ratio,
+        noise=noise, warnings=tuple(warns))
+
+
+@dataclass(frozen=True, eq=False)
+class Assessment:
+    """What the data say about an estimate (:func:`assess`).
+
+    Attributes
+    ----------
+    residuals : ndarray
+        Weighted residuals at the estimate (channel standard deviations).
+    covariance : Covariance or None
+    elements : dict of str to ElementFit
+    noise_ratio : float
+        Mean squared residual over the sensor noise's variance from the data.
+    warnings : tuple of str
+    """
+
+    residuals: np.ndarray
+    covariance: Covariance | None
+    elements: dict
+    noise_ratio: float
+    warnings: tuple[str, ...]
+
+
+def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate, *,
+           uncertainty: bool = True, converged: bool = True) -> Assessment:
+    """Intervals, identifiability flags and the noise-floor check at an estimate.
+
+    The last step of :func:`fit_gaps`, public so that an estimate reached
+    otherwise (a test started at the simulated truth, a profile point) is
+    judged the same way.
+
+    Parameters
+    ----------
+    problem : Problem
+    method : Collocation or SingleShooting
+        The strategy ``est`` came out of (its discretisation and final width).
+    est : Estimate
+        From ``method.solve(problem, ...)``.
+    uncertainty : bool
+        Compute the covariance (else intervals are NaN, nothing identifiable).
+    converged : bool
+        Whether the solve converged (the noise-floor check applies only then).
+    """
+    model = problem.model
+    warns: list[str] = []
+    r_fit = _residuals(method, problem, est)
+    cov = None
+    if uncertainty:
+        try:
+            sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
+                    else shooting_sensitivity(method, problem, est))
+            cov = covariance(sens)
+        except Exception as exc:  # noqa: BLE001 - report, never invent a number
+            warns.append(f"uncertainty failed ({type(exc).__name__}: {exc}); intervals omitted")
+    elements, ewarn = _element_report(model, problem, est, cov, _final_width(method))
+    warns += ewarn
+    ratio = _noise_ratio(r_fit, problem)
+    if converged and ratio > NOISE_RATIO_MAX:
+        warns.append(f"the residuals stay {ratio:.2f} times the sensor noise's variance "
+                     f"(at most {NOISE_RATIO_MAX} expected): a local minimum or an effect the "
+                     "model lacks; no gap is reported as identified")
+        elements = {k: replace(v, identifiable=False, gap_open_identifiable=False)
+                    for k, v in elements.items()}
+    return Assessment(residuals=r_fit, covariance=cov, elements=elements, noise_ratio=ratio,
+                      warnings=tuple(warns))
+
+
+# ---- helpers ------------------------------------------------------------------------------
+def _fl(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _no_horizons(method: Any) -> dict[str, Any]:
+    return {"horizons": ()}
+
+
+def _final_width(method: Any) -> float:
+    return float(method.widths[-1])
+
+
+def _residuals(method: Any, problem: Problem, est: Estimate) -> np.ndarray:
+    if isinstance(method, Collocation):
+        return method.residual_vector(problem, est)
+    r, _ = method.residuals(problem, est, est.extra.get("width", _final_width(method)))
+    return r
+
+
+def _noise_ratio(r: np.ndarray, problem: Problem) -> float:
+    """Mean squared residual over the sensor noise's variance estimated from the data."""
+    ny = problem.model.ny
+    sig = noise_floor(problem.y, problem.y_scale)
+    ch = np.arange(r.size) % ny
+    den = float(np.sum(sig[ch] ** 2))
+    return float(r @ r) / den if den > 0 else math.nan
+
+
+def _nrmse_channels(r: np.ndarray, ny: int) -> dict[int, float]:
+    """Per channel RMS of residuals already divided by the channel's std."""
+    ch = np.arange(r.size) % ny
+    return {c: float(np.sqrt(np.mean(r[ch == c] ** 2))) for c in range(ny)}
+
+
+def _gap_dict(model: FitModel, shared: np.ndarray) -> dict[str, float]:
+    return {e.id: float(model.equivalent_gap(e.id, shared)[0]) for e in model.mill.elements}
+
+
+def _start_vectors(model: FitModel, starts: Sequence[dict] | None, n_starts: int,
+                   random_state: Any, min_gap: float) -> list[np.ndarray]:
+    """Shared-parameter vectors of the starts."""
+    rng = random_state if isinstance(random_state, np.random.Generator) else \
+        np.random.default_rng(random_state)
+    mill = model.mill
+    if starts:
+        gap_sets = []
+        for s in starts:
+            gap_sets.append({e.id: float(s.get(e.id, s.get(f"{e.id}.gap", max(e.gap, min_gap))))
+                             for e in mill.elements})
+    else:
+        gap_sets = [{e.id: max(e.gap, min_gap) for e in mill.elements}]
+        for _ in range(max(n_starts, 1) - 1):
+            gap_sets.append({e.id: float(np.exp(rng.uniform(np.log(3e-4), np.log(1.2e-2))))
+                             for e in mill.elements})
+    out = []
+    for gs in gap_sets:
+        out.append(_shared_from_gaps(model, gs))
+    return out
+
+
+def _shared_from_gaps(model: FitModel, gaps: dict[str, float]) -> np.ndarray:
+    """Shared vector of the model's family imitating g1 gaps."""
+    import dataclasses
+
+    from ..model.dynamics import default_family_params
+
+    v = np.zeros(model.n_shared)
+    for e in model.mill.elements:
+        g = float(gaps[e.id])
+        if model.family is Family.G1:
+            v[model.shared_names.index(f"{e.id}.gap")] = g
+        elif model.family is Family.G2:
+            el = dataclasses.replace(e, gap=max(g, 1e-3), gap_open=0.5 * max(g, 1e-3))
+            for nm, val in zip(("a1", "a2", "a3"), default_family_params(el, Family.G2)):
+                v[model.shared_names.index(f"{e.id}.{nm}")] = val
+            a1, a2, a3 = (v[model.shared_names.index(f"{e.id}.{k}")] for k in ("a1", "a2", "a3"))
+            v[model.shared_names.index(f"{e.id}.a1")] = max(a1, 1e-3 * e.k)
+            v[model.shared_names.index(f"{e.id}.a3")] = max(a3, 1e-6)
+        else:
+            v[model.shared_names.index(f"{e.id}.gap_app")] = max(g, 2e-5)
+            v[model.shared_names.index(f"{e.id}.stiffness")] = 1.0
+    return np.clip(v, model.shared_lb, model.shared_ub)
+
+
+def _start_from_baseline(problem: Problem, lin: Estimate, shared: np.ndarray,
+                         open_frac: float) -> Estimate:
+    """The baseline's loads and speeds, deflections moved into the start's gaps."""
+    m = problem.model
+    mill = m.mill
+    D = incidence(mill)
+    n = len(mill.masses)
+    x0 = lin.x0.copy()
+    from .model import _gaps_and_contacts
+
+    gaps, contact = _gaps_and_contacts(m, shared)
+    for i in range(problem.n_windows):
+        delta_lin = D @ lin.x0[i, :n]
+        tau = np.array([e.k for e in mill.elements]) * delta_lin
+        tol = 0.05 * max(float(np.max(np.abs(tau))), 1.0)
+        delta = np.where(tau > tol, contact + delta_lin,
+                         np.where(tau < -tol, contact - gaps + delta_lin,
+                                  contact - open_frac * gaps))
+        x0[i, :n] = angles_from_deflections(mill, delta, m.motor_index)
+    return Estimate(shared=np.asarray(shared, dtype=float).copy(), window=lin.window.copy(),
+                    x0=x0)
+
+
+def _ci(v: float, se: float, lo: float, hi: float) -> tuple[float, float]:
+    if not np.isfinite(se):
+        return (lo, hi)
+    return (float(np.clip(v - Z95 * se, lo, hi)), float(np.clip(v + Z95 * se, lo, hi)))
+
+
+def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covariance | None,
+                    width: float) -> tuple[dict[str, ElementFit], list[str]]:
+    mill = model.mill
+    D = incidence(mill)
+    n = len(mill.masses)
+    out: dict[str, ElementFit] = {}
+    warns: list[str] = []
+    fam = model.family
+    kinds = [w.kind for w in problem.windows]
+    for j, e in enumerate(mill.elements):
+        gap, contact = model.equivalent_gap(e.id, est.shared)
+        idx = model.element_shared(e.id)
+        # gradient of the gap (and of the contact) with respect to the shared parameters
+        grad_gap: dict = {}
+        grad_contact: dict = {}
+        for i in idx:
+            h = max(abs(est.shared[i]) * 1e-6, 1e-12)
+            sp = est.shared.copy()
+            sp[i] += h
+            g2, c2 = model.equivalent_gap(e.id, sp)
+            grad_gap[("shared", i)] = (g2 - gap) / h if np.isfinite(g2) else 0.0
+            grad_contact[("shared", i)] = (c2 - contact) / h if np.isfinite(c2) else 0.0
+        fixed = all(not problem.free_shared[i] for i in idx)
+        se = math.inf if cov is None else (0.0 if fixed else cov.linear_se(grad_gap))
+        ci = _ci(gap, se, 0.0, model.gap_max) if cov is not None else (math.nan, math.nan)
+        # open part per window: contact - initial deflection
+        opens = []
+        open_se = []
+        for i in range(problem.n_windows):
+            delta0 = float(D[j] @ est.x0[i, :n])
+            opens.append(float(np.clip(contact - delta0, 0.0, max(gap, 0.0))))
+            if cov is not None:
+                g = dict(grad_contact)
+                for mass in range(n):
+                    if D[j, mass] != 0.0:
+                        g[("x0", i, mass)] = -D[j, mass]
+                open_se.append(cov.linear_se(g))
+            else:
+                open_se.append(math.inf)
+        first = kinds.index("bite") if "bite" in kinds else 0
+        go = opens[first]
+        go_ci = _ci(go, open_se[first], 0.0, max(gap, 0.0)) if cov is not None else (
+            math.nan, math.nan)
+        fam_params = model.family_params(est.shared)[e.id]
+        params_se: dict[str, float] = {}
+        if fam is Family.G1:
+            params = {"smoothing_final": width}
+        elif fam is Family.G2:
+            params = dict(fam_params)
+            for nm in ("a1", "a2", "a3"):
+                k = model.shared_names.index(f"{e.id}.{nm}")
+                params_se[nm] = cov.se(("shared", k)) if cov is not None else math.inf
+        else:
+            params = dict(fam_params)
+            params["shift"] = float(-(D[j] @ est.x0[first, :n]))
+            kg = model.shared_names.index(f"{e.id}.gap_app")
+            ks = model.shared_names.index(f"{e.id}.stiffness")
+            if cov is not None:
+                a0, sig = fam_params["a0"], fam_params["sigma"]
+                params_se["a0"] = abs(a0 / est.shared[ks]) * cov.se(("shared", ks))
+                params_se["sigma"] = abs(sig / est.shared[kg]) * cov.se(("shared", kg))
+        half = Z95 * se
+        # the linearisation holds only while the far flank stays in contact: a
+        # gap the trajectories do not traverse (drive flank and back flank in
+        # one window) is bounded from below only, whatever its Fisher information
+        depth = _traversal_depth(model, est, j, gap, contact)
+        traversed = bool(np.isfinite(depth) and depth > 0.5 * width and half < depth)
+        identifiable = bool(cov is not None and np.isfinite(se) and traversed
+                            and half <= max(0.25 * abs(gap), 5e-4))
+        if cov is not None and not traversed and not fixed:
+            ci = (float(np.clip(gap - half if np.isfinite(half) else 0.0, 0.0, gap)),
+                  float(model.gap_max))
+        engaged = _engages(model, est, j, contact, first, width)
+        open_ident = bool(cov is not None and np.isfinite(open_se[first]) and engaged
+                          and Z95 * open_se[first] <= max(0.25 * abs(gap), 5e-4))
+        if cov is not None and not engaged:
+            go_ci = (0.0, float(max(gap, 0.0)))
+        if cov is not None and not identifiable and not fixed:
+            warns.append(f"{e.id}: the measured torques do not pin its gap down "
+                         f"(95 % interval {ci[0] * 1e3:.2f}..{ci[1] * 1e3:.2f} mrad): not "
+                         f"identifiable from these windows")
+        if np.isfinite(gap) and gap >= 0.98 * model.gap_max:
+            warns.append(f"{e.id}: gap at its upper bound {model.gap_max} rad")
+        out[e.id] = ElementFit(
+            gap=float(gap), gap_ci95=ci, gap_se=float(se), gap_open=float(go),
+            gap_open_ci95=go_ci, gap_open_windows=tuple(opens),
+            gap_mm=e.gap_mm(float(gap)) if np.isfinite(gap) else None, params=params,
+            params_se=params_se, identifiable=identifiable, gap_open_identifiable=open_ident)
+    return out, warns
+
+
+def _traversal_depth(model: FitModel, est: Estimate, j: int, gap: float,
+                     contact: float) -> float:
+    """How deep element ``j`` presses into both flanks of its gap in its best window, rad.
+
+    Per window, the smaller of the largest excursion past the drive-side
+    contact (``delta > contact``) and past the back flank
+    (``delta < contact - gap``) along the fitted trajectory; the largest over
+    the windows.  Negative when no window touches both flanks; NaN without
+    trajectories.
+    """
+    if est.trajectories is None or not np.isfinite(gap):
+        return math.nan
+    mill = model.mill
+    n = len(mill.masses)
+    Dj = incidence(mill)[j]
+    best = -math.inf
+    for X in est.trajectories:
+        delta = X[:, :n] @ Dj
+        drive = float(np.max(delta)) - contact
+        back = (contact - gap) - float(np.min(delta))
+        best = max(best, min(drive, back))
+    return best
+
+
+def _engages(model: FitModel, est: Estimate, j: int, contact: float, i: int,
+             width: float) -> bool:
+    """Whether element ``j`` reaches its drive-side contact in window ``i`` (what shows ``gap_open``)."""
+    if est.trajectories is None:
+        return False
+    n = len(model.mill.masses)
+    delta = est.trajectories[i][:, :n] @ incidence(model.mill)[j]
+    return bool(float(np.max(delta)) - contact > 0.5 * width)
+
+
+def _window_report(problem: Problem, est: Estimate, elements: dict) -> tuple[dict, ...]:
+    m = problem.model
+    out = []
+    for i, w in enumerate(problem.windows):
+        load = {k: float(v) for k, v in zip(m.window_names, est.window[i])}
+        load["t_step"] = float(load["t_step"] + w.t[0])
+        out.append({"label": w.label, "kind": w.kind, "t_start": float(w.t[0]),
+                    "t_end": float(w.t[-1]), "load": load,
+                    "gap_open": {eid: el.gap_open_windows[i] for eid, el in elements.items()}})
+    return tuple(out)

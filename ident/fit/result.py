@@ -1,0 +1,211 @@
+"""The frozen result of :func:`ident.fit.fit_gaps` and its cli.md JSON."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+__all__ = ["ElementFit", "SolverReport", "FitResult", "NOISE_RATIO_MAX"]
+
+#: Largest ratio of the residuals' mean square to the sensor noise's variance
+#: (estimated from the data, :func:`ident.fit.uncertainty.noise_floor`) of a
+#: fit whose intervals are reported.  At the global optimum of a right model it
+#: is 1 within a few per cent (simulated recordings, 35 dB: 0.98-1.05); local
+#: minima measured 1.1-4.
+NOISE_RATIO_MAX = 1.2
+
+
+def _f(x: Any) -> Any:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+@dataclass(frozen=True)
+class ElementFit:
+    """What the fit found for one element.
+
+    Attributes
+    ----------
+    gap : float
+        Total gap, rad (reduced); for g2/g3/g4 the family's equivalent gap.
+    gap_ci95 : (float, float)
+        95 % interval of ``gap``, rad, clipped to ``[0, gap_max]``.
+    gap_se : float
+        Standard error of ``gap``, rad (``inf`` when the data cannot see it).
+    gap_open : float
+        Open part of the gap in the drive direction at the start of the first
+        window, rad (0 when the element starts loaded).
+    gap_open_ci95 : (float, float)
+    gap_open_windows : tuple of float
+        ``gap_open`` at the start of every window, rad.
+    gap_mm : float or None
+        ``gap`` as tooth clearance, mm (needs the element's ``radius``).
+    params : mapping
+        The family's parameters (g1: ``smoothing_final``, rad; g2: ``a1, a2, a3``;
+        g3/g4: ``a0, sigma, shift``) with standard errors under ``params_se``.
+    identifiable : bool
+        False when the channels do not pin the gap down: its interval is wider
+        than ``max(25 %, 0.5 mrad)`` either side, or the data do not see it.
+    gap_open_identifiable : bool
+    """
+
+    gap: float
+    gap_ci95: tuple[float, float]
+    gap_se: float
+    gap_open: float
+    gap_open_ci95: tuple[float, float]
+    gap_open_windows: tuple[float, ...]
+    gap_mm: float | None
+    params: Mapping[str, float]
+    params_se: Mapping[str, float]
+    identifiable: bool
+    gap_open_identifiable: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "gap": _f(self.gap),
+            "gap_ci95": [_f(self.gap_ci95[0]), _f(self.gap_ci95[1])],
+            "gap_open": _f(self.gap_open),
+            "gap_mm": _f(self.gap_mm),
+            "params": {k: _f(v) for k, v in self.params.items()},
+            "gap_se": _f(self.gap_se),
+            "gap_open_ci95": [_f(self.gap_open_ci95[0]), _f(self.gap_open_ci95[1])],
+            "gap_open_windows": [_f(v) for v in self.gap_open_windows],
+            "params_se": {k: _f(v) for k, v in self.params_se.items()},
+            "identifiable": bool(self.identifiable),
+            "gap_open_identifiable": bool(self.gap_open_identifiable),
+        }
+
+
+@dataclass(frozen=True)
+class SolverReport:
+    """How the solver did.
+
+    Attributes
+    ----------
+    status : str
+        IPOPT's return status (collocation) or ``least_squares``' (shooting) of
+        the winning start's last stage.
+    converged : bool
+    iterations : int
+        Iterations of the winning start, all stages.
+    seconds : float
+        Wall time of the whole fit (all starts, the linear baseline and the
+        uncertainty), s.
+    method : str
+    start : int
+        Index of the winning start in ``starts``.
+    starts : tuple of dict
+        Per start: initial gaps, final cost, status, iterations, seconds.
+    stages : tuple of dict
+        The winning start's continuation stages.
+    build_seconds : float
+        Time spent building NLPs / simulators, s.
+    nlp : mapping
+        Size of the problem.
+    """
+
+    status: str
+    converged: bool
+    iterations: int
+    seconds: float
+    method: str
+    start: int
+    starts: tuple = ()
+    stages: tuple = ()
+    build_seconds: float = 0.0
+    nlp: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"status": self.status, "iterations": int(self.iterations),
+                "seconds": _f(self.seconds), "converged": bool(self.converged),
+                "method": self.method, "start": int(self.start), "starts": list(self.starts),
+                "stages": list(self.stages), "build_seconds": _f(self.build_seconds),
+                "nlp": dict(self.nlp)}
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Identified gaps and smoothing parameters of a mill (cli.md ``fit``).
+
+    Attributes
+    ----------
+    mill : str
+    family : str
+    elements : mapping of str to ElementFit
+        Every element of the mill file.
+    nrmse, nrmse_linear : float
+        Mean over torque channels of RMS(model - measured) / std(measured)
+        over the fitted windows: identified model and linear baseline (all
+        gaps closed, its own loads and initial states fitted).
+    nrmse_channels, nrmse_linear_channels : mapping
+        The same per channel (element id).
+    solver : SolverReport
+    windows : tuple of dict
+        Per window: label, kind, times, fitted load and ``gap_open`` per element.
+    noise : mapping
+        Residual standard deviation per channel (N*m) and its long-run factor.
+    warnings : tuple of str
+    noise_ratio : float
+        Mean squared residual over the sensor noise's variance estimated from
+        the data alone: about 1 when the fit reached the noise floor; above
+        :data:`NOISE_RATIO_MAX` the fit sits in a local minimum
+        (or the model misses an effect) and no gap is reported as identified.
+    """
+
+    mill: str
+    family: str
+    elements: Mapping[str, ElementFit]
+    nrmse: float
+    nrmse_linear: float
+    nrmse_channels: Mapping[str, float]
+    nrmse_linear_channels: Mapping[str, float]
+    solver: SolverReport
+    windows: tuple = ()
+    noise: Mapping[str, Any] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+    noise_ratio: float = math.nan
+
+    @property
+    def converged(self) -> bool:
+        return self.solver.converged
+
+    @property
+    def reached_noise_floor(self) -> bool:
+        """Whether the residuals are down to the sensor noise (see :attr:`noise_ratio`)."""
+        return bool(math.isfinite(self.noise_ratio) and self.noise_ratio <= NOISE_RATIO_MAX)
+
+    def gaps(self) -> dict[str, float]:
+        """Identified total gap per element, rad."""
+        return {k: v.gap for k, v in self.elements.items()}
+
+    def raise_if_failed(self) -> "FitResult":
+        """Return self, or raise :class:`~ident.errors.FitError` when the solver did not converge."""
+        if not self.converged:
+            from ..errors import FitError
+
+            raise FitError(f"the {self.solver.method} fit did not converge: status "
+                           f"{self.solver.status!r} after {self.solver.iterations} iterations; "
+                           "its numbers are not an identification.")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """The cli.md ``fit`` JSON plus extra keys."""
+        return {
+            "mill": self.mill,
+            "family": self.family,
+            "elements": {k: v.to_dict() for k, v in self.elements.items()},
+            "metrics": {"nrmse": _f(self.nrmse), "nrmse_linear": _f(self.nrmse_linear),
+                        "noise_ratio": _f(self.noise_ratio),
+                        "reached_noise_floor": self.reached_noise_floor,
+                        "nrmse_channels": {k: _f(v) for k, v in self.nrmse_channels.items()},
+                        "nrmse_linear_channels": {k: _f(v) for k, v in
+                                                  self.nrmse_linear_channels.items()}},
+            "solver": self.solver.to_dict(),
+            "windows": list(self.windows),
+            "noise": dict(self.noise),
+            "warnings": list(self.warnings),
+        }

@@ -1,0 +1,103 @@
+"""``ident fit REC --mill M``: the cli.md JSON, exit codes and messages.
+
+One simulated bar (a bite and a release, 0.3 s windows) of the shipped stand
+with worn spindles; the converged run is the only full fit here (the
+statistics live in ``test_fit.py``).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ident.cli import main
+from ident.fit.synthetic import synthetic_case
+
+TRUTH = {"C46.gap": 0.006, "C46.gap_open": 0.003, "C57.gap": 0.004, "C57.gap_open": 0.001}
+CLI = ["--window-s", "0.3", "--max-transients", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def recording(mill, tmp_path_factory):
+    case = synthetic_case(mill, TRUTH, seed=3, n_bars=1,
+                          directory=tmp_path_factory.mktemp("fitcli"))
+    return case
+
+
+@pytest.mark.slow
+def test_fit_writes_the_cli_json(tmp_path, mill, mill_path, recording, capsys):
+    """Converged collocation fit: every element, cli.md keys, exit 0, nothing on stderr."""
+    out = tmp_path / "fit.json"
+    code = main(["fit", str(recording.path), "--mill", str(mill_path), "--out", str(out)] + CLI)
+    assert capsys.readouterr().err == ""
+    doc = json.loads(out.read_text())
+    assert code == 0, doc["solver"]
+    assert doc["mill"] == "hsm-f1" and doc["family"] == "g1"
+    assert set(doc["elements"]) == set(mill.element_ids)
+    for eid, el in doc["elements"].items():
+        assert {"gap", "gap_ci95", "gap_open", "gap_mm", "params"} <= set(el)
+        lo, hi = el["gap_ci95"]
+        assert 0.0 <= lo <= el["gap"] <= hi
+        assert 0.0 <= el["gap_open"] <= el["gap"] + 1e-12
+        e = mill.element(eid)
+        assert el["gap_mm"] == pytest.approx(el["gap"] / e.ratio * e.radius * 1e3)
+    assert {"nrmse", "nrmse_linear"} <= set(doc["metrics"])
+    assert doc["metrics"]["nrmse"] < doc["metrics"]["nrmse_linear"]
+    s = doc["solver"]
+    assert s["status"] == "Solve_Succeeded" and s["converged"] is True
+    assert s["iterations"] > 0 and s["seconds"] > 0
+    assert doc["windows_used"] and doc["recording"] == str(recording.path)
+    for eid in ("C46", "C57"):  # the worn spindles, measured directly
+        assert doc["elements"][eid]["gap"] == pytest.approx(TRUTH[f"{eid}.gap"], rel=0.1)
+
+
+def test_fit_not_converged_writes_json_and_exits_1(tmp_path, mill_path, recording, capsys):
+    """Two IPOPT iterations per stage: honest status in the JSON, a message, exit 1."""
+    out = tmp_path / "fit.json"
+    code = main(["fit", str(recording.path), "--mill", str(mill_path), "--out", str(out),
+                 "--max-iter", "2", "--no-uncertainty"] + CLI)
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "did not converge" in err and "not an identification" in err
+    doc = json.loads(out.read_text())
+    assert doc["solver"]["converged"] is False
+    assert doc["solver"]["status"] == "Maximum_Iterations_Exceeded"
+    assert set(doc["elements"]) >= {"C46", "C57"}
+
+
+def test_corrupt_recording_exits_2_naming_the_file(tmp_path, mill_path, recording, capsys):
+    bad = tmp_path / "cut.mcap"
+    bad.write_bytes(recording.path.read_bytes()[:300])
+    assert main(["fit", str(bad), "--mill", str(mill_path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cut.mcap" in err[0]
+
+
+def test_recording_without_torque_exits_2_naming_channels(tmp_path, mill_path, capsys):
+    p = tmp_path / "speed.csv"
+    pd.DataFrame({"time": np.arange(2000) / 1000.0, "X_other [N*m]": np.zeros(2000)}).to_csv(
+        p, index=False)
+    assert main(["fit", str(p), "--mill", str(mill_path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "T_C46" in err[0]
+
+
+@pytest.mark.parametrize("opt, value, name", [("--max-transients", "0", "--max-transients"),
+                                              ("--starts", "0", "--starts"),
+                                              ("--window-s", "-1", "--window-s"),
+                                              ("--max-iter", "0", "--max-iter")])
+def test_bad_option_values_exit_2(mill_path, recording, capsys, opt, value, name):
+    assert main(["fit", str(recording.path), "--mill", str(mill_path), opt, value,
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and name in err[0]
+
+
+def test_unknown_set_key_exits_2(mill_path, recording, capsys):
+    assert main(["fit", str(recording.path), "--mill", str(mill_path), "--set",
+                 "C99.gap=0.001", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "C99" in err[0]
