@@ -184,3 +184,16 @@ def test_campaign_cli_exit_codes(tmp_path, mill_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "campaign folder not found" in err and "Got 'nonsense'" in err
     assert "mill file not found" in err
+
+
+def test_gap_panel_with_an_estimate_a_rounding_error_outside_its_interval():
+    """A gap on its upper bound 1e-12 above the interval's end must not break the report."""
+    from ident.report import figures as F
+
+    t = np.array([0.0, 5.0, 10.0])
+    y = np.array([4.0, 5.0, 30.0 + 1e-12])
+    panel = F.GapPanel(title="C57", unit="mrad", t=t, y=y, lo=y - 0.5,
+                       hi=np.array([4.5, 5.5, 30.0]), worn=4.0, critical=8.0, trend=None,
+                       worn_at=None, critical_at=None, status="unknown", horizon=7.0, note="")
+    html = F.gap_trends([panel], t0_ns=0)
+    assert "<svg" in html or "data:image" in html

@@ -516,6 +516,8 @@ def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covar
                          f"identifiable from these windows")
         if np.isfinite(gap) and gap >= 0.98 * model.gap_max:
             warns.append(f"{e.id}: gap at its upper bound {model.gap_max} rad")
+        if np.isfinite(gap) and all(np.isfinite(ci)):  # on a bound: rounding only
+            ci = (min(ci[0], float(gap)), max(ci[1], float(gap)))
         out[e.id] = ElementFit(
             gap=float(gap), gap_ci95=ci, gap_se=float(se), gap_open=float(go),
             gap_open_ci95=go_ci, gap_open_windows=tuple(opens),

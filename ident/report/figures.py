@@ -113,7 +113,8 @@ def gap_trends(panels: Sequence[GapPanel], *, t0_ns: int, ncols: int = 2) -> str
             ax.fill_between(tt, lo, hi, color="#1565c0", alpha=0.15, lw=0,
                             label="trend, 95 % band")
             ax.plot(tt, p.trend.predict(tt), color="#1565c0", lw=1.2)
-        err = np.vstack([p.y - p.lo, p.hi - p.y])
+        # an estimate on its bound can sit a rounding error outside its interval
+        err = np.maximum(np.vstack([p.y - p.lo, p.hi - p.y]), 0.0)
         has_err = np.isfinite(err).all(axis=0)
         if has_err.any():
             ax.errorbar(p.t[has_err], p.y[has_err], yerr=err[:, has_err], fmt="o", ms=3.5,
