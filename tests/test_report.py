@@ -197,3 +197,20 @@ def test_gap_panel_with_an_estimate_a_rounding_error_outside_its_interval():
                        worn_at=None, critical_at=None, status="unknown", horizon=7.0, note="")
     html = F.gap_trends([panel], t0_ns=0)
     assert "<svg" in html or "data:image" in html
+
+
+@pytest.mark.parametrize("statuses, says", [
+    (["unknown"] * 6, "No element's or bearing's wear state is known"),
+    (["good", "good", "unknown"], "2 of 3 elements and bearings below their worn limits"),
+    (["good", "good"], "All elements and bearings below their worn limits"),
+    (["good", "worn", "unknown"], "Plan maintenance"),
+])
+def test_headline_never_calls_unknown_states_good(statuses, says):
+    from types import SimpleNamespace
+
+    from ident.report.html import _headline
+
+    sec = SimpleNamespace(assessments=[SimpleNamespace(status=st, id=f"E{i}", label="x",
+                                                       reason="r")
+                                       for i, st in enumerate(statuses)], tables={})
+    assert says in _headline(sec)

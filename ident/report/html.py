@@ -133,10 +133,19 @@ def _headline(s: MillSection) -> str:
         color = STATUS_COLORS["worn"]
         text = "Plan maintenance: " + "; ".join(
             f"<b>{_e(a.id)}</b> {_e(a.label)} — {_e(a.reason)}" for a in by["worn"])
+    elif not by["good"]:
+        color = STATUS_COLORS["unknown"]
+        text = ("No element's or bearing's wear state is known: no fit identified its gap "
+                "from the measured channels and no diagnosis decided (see the trend panels "
+                "and <i>Data quality</i>).")
     else:
         color = STATUS_COLORS["good"]
         text = "All elements and bearings below their worn limits, no limit expected within " \
                "the horizon."
+        if by["unknown"]:
+            text = (f"{len(by['good'])} of {len(s.assessments)} elements and bearings below "
+                    "their worn limits, no limit expected within the horizon; the others' "
+                    "state is unknown.")
     counts = ", ".join(f"{len(by[k])} {k}" for k in ("critical", "worn", "good", "unknown")
                        if by[k])
     return (f'<div class="headline" style="border-left-color:{color}">{text}'
