@@ -24,6 +24,11 @@ element (C12, C34, C46, C57) within max(10 %, 0.3 mrad) of its truth.
 
 Run:  nice .venv/bin/python -m benchmarks.bench_fit [--quick] [--only a,b,c,d,scale]
 
+Expect more than an hour: (a) about 15 s, (b) 5 min, (c) 40 s per start and
+method, (d) over 30 min for collocation on the 3 s window (the rattle after a
+release makes the NLP hard; a 0.6 s release alone took 561 s), the scaling
+part 10 min.  ``--only a,b,c --quick`` takes about 10 minutes.
+
 Results go to stdout and to ``benchmarks/results/bench_fit.json``.
 """
 
