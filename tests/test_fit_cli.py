@@ -101,3 +101,16 @@ def test_unknown_set_key_exits_2(mill_path, recording, capsys):
                  "C99.gap=0.001", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "C99" in err[0]
+
+
+def test_held_path_is_reported(tmp_path, mill_path, recording):
+    """--held: every start also runs with the gaps held through the continuation."""
+    out = tmp_path / "fit.json"
+    main(["fit", str(recording.path), "--mill", str(mill_path), "--out", str(out), "--held",
+          "--no-uncertainty"] + CLI)
+    doc = json.loads(out.read_text())
+    assert [s["path"] for s in doc["solver"]["starts"]] == ["continued", "held"]
+    assert doc["solver"]["path"] in ("continued", "held")
+    best = min(s["cost"] for s in doc["solver"]["starts"] if s["converged"])
+    assert any(s["cost"] == best and s["path"] == doc["solver"]["path"]
+               for s in doc["solver"]["starts"])

@@ -75,6 +75,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-iter", type=int, default=None, metavar="N",
                    help="solver iterations per continuation stage (IPOPT max_iter / "
                         "least_squares max_nfev)")
+    p.add_argument("--held", action="store_true",
+                   help="also run each start's continuation with the gaps held at the start, "
+                        "freed at the final width, and keep the better (for a start near the "
+                        "truth, e.g. the last identified gaps; about twice the time)")
     p.add_argument("--no-uncertainty", action="store_true",
                    help="skip standard errors and intervals (faster)")
 
@@ -121,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore", ConvergenceWarning)  # reported below, once
         result = fit_gaps(mill, windows, family=args.family, method=method,
                           n_starts=args.starts, random_state=args.seed,
-                          uncertainty=not args.no_uncertainty, progress=not args.quiet)
+                          uncertainty=not args.no_uncertainty, direct=args.held,
+                          progress=not args.quiet)
     doc = result.to_dict()
     doc["recording"] = str(args.recording)
     doc["windows_used"] = [w.label for w in windows]

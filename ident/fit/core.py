@@ -75,7 +75,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
              random_state: int | np.random.Generator | None = 0, min_start_gap: float = 5e-4,
              gap_max: float | None = None, open_frac: float = 0.5,
              fixed: dict[str, float] | None = None, effects: Sequence = (),
-             uncertainty: bool = True, progress: bool = False) -> FitResult:
+             uncertainty: bool = True, direct: bool = False,
+             progress: bool = False) -> FitResult:
     """Identify every element's gap from measured transient windows.
 
     Parameters
@@ -112,6 +113,17 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         Extra model terms (discrepancy workflow), parameters at their defaults.
     uncertainty : bool
         Compute standard errors and intervals.
+    direct : bool
+        g1 only: also run each start's whole continuation with the gaps held
+        at the start, then free them at the final smoothing width only, and
+        keep whichever of the two paths ends at the lower cost
+        (``solver.path``: ``continued`` or ``held``).  The continuation tracks
+        the optimum of a rounded model, which for gaps of the order of the
+        first widths (1 mrad) can lead away from a good start: on a demo
+        recording with 1-2 mrad gaps, started at its true gaps, the continued
+        fit ended at 5.1 times the noise variance, the gaps held through the
+        continuation at 0.99.  Off by default: it costs a second solve per start
+        (a 4-window recording of ``tests/test_fit.py``: 243 s -> 610 s).
     progress : bool
         Progress bar on stderr.
 
@@ -184,31 +196,21 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             s[j] = v
     runs = []
     held = problem.with_free(np.zeros(model.n_shared, dtype=bool))
+    final = (_final_width(method),)
+    paths = [("continued", method.settle, None, None)]
+    if direct and model.family is Family.G1:
+        paths.append(("held", None, final, ()))
     for k, sv in enumerate(start_vecs):
-        est0 = _start_from_baseline(problem, lin_est, sv, open_frac)
-        try:
-            settle_info = None
-            if method.settle:
-                est0, settle_info = method.solve(held, est0, widths=method.settle,
-                                                 **_no_horizons(method))
-                build_s += settle_info.build_seconds
-            est, info = method.solve(problem, est0)
-            if settle_info is not None:
-                info = replace(info, iterations=info.iterations + settle_info.iterations,
-                               seconds=info.seconds + settle_info.seconds,
-                               stages=tuple(replace(s, status=f"settle: {s.status}")
-                                            for s in settle_info.stages) + info.stages)
-        except RuntimeError as exc:  # solver crashed on this start
-            info = SolveInfo(method=method.name, status=f"Error: {exc}"[:200], success=False,
-                             iterations=0, seconds=0.0, cost=math.inf)
-            est = est0
-        build_s += info.build_seconds
-        runs.append((k, sv, est, info))
+        base = _start_from_baseline(problem, lin_est, sv, open_frac)
+        for path, settle, widths, horizons in paths:
+            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
+            build_s += info.build_seconds
+            runs.append((k, sv, est, info, path))
         if bar:
             bar.update(1)
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
-    k_best, sv_best, est, info = min(pool, key=lambda r: r[3].cost)
+    k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
     converged = bool(ok)
     warns: list[str] = []
     if not converged:
@@ -227,16 +229,17 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     r_fit, cov, elements, ratio = a.residuals, a.covariance, a.elements, a.noise_ratio
     warns += list(a.warnings)
     nrmse_ch = _nrmse_channels(r_fit, model.ny)
-    starts_rep = tuple({"gaps": _gap_dict(model, sv), "cost": _fl(i.cost), "status": i.status,
-                        "converged": bool(i.success), "iterations": int(i.iterations),
-                        "seconds": _fl(i.seconds)} for (_, sv, _, i) in runs)
+    starts_rep = tuple({"start": k, "path": pth, "gaps": _gap_dict(model, sv),
+                        "cost": _fl(i.cost), "status": i.status, "converged": bool(i.success),
+                        "iterations": int(i.iterations), "seconds": _fl(i.seconds)}
+                       for (k, sv, _, i, pth) in runs)
     solver = SolverReport(
         status=info.status, converged=converged, iterations=info.iterations,
         seconds=time.perf_counter() - t_all, method=method.name, start=k_best,
         starts=starts_rep,
         stages=tuple({"width": s.width, "status": s.status, "iterations": s.iterations,
                       "seconds": _fl(s.seconds), "cost": _fl(s.cost)} for s in info.stages),
-        build_seconds=build_s, nlp=dict(info.nlp))
+        build_seconds=build_s, nlp=dict(info.nlp), path=path_best)
     noise = {}
     if cov is not None:
         noise = {eid: {"sigma": float(cov.sigma[c] * problem.y_scale[c]),
@@ -319,6 +322,35 @@ def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate
 
 
 # ---- helpers ------------------------------------------------------------------------------
+def _solve_start(method: Any, problem: Problem, held: Problem, est0: Estimate,
+                 settle: Sequence[float], widths: Sequence[float] | None,
+                 horizons: Sequence[float] | None) -> tuple[Estimate, SolveInfo]:
+    """Settle (shared parameters held) at ``settle``'s widths, then solve one start.
+
+    ``settle=None``: the strategy's whole continuation with the shared
+    parameters held, then ``widths``/``horizons`` with them free.
+    """
+    try:
+        settle_info = None
+        if settle is None:  # the whole continuation with the shared parameters held
+            est0, settle_info = method.solve(held, est0)
+        elif settle:
+            est0, settle_info = method.solve(held, est0, widths=tuple(settle),
+                                             **_no_horizons(method))
+        est, info = method.solve(problem, est0, widths=widths, horizons=horizons)
+        if settle_info is not None:
+            info = replace(info, iterations=info.iterations + settle_info.iterations,
+                           seconds=info.seconds + settle_info.seconds,
+                           build_seconds=info.build_seconds + settle_info.build_seconds,
+                           stages=tuple(replace(s, status=f"settle: {s.status}")
+                                        for s in settle_info.stages) + info.stages)
+    except RuntimeError as exc:  # solver crashed on this start
+        info = SolveInfo(method=method.name, status=f"Error: {exc}"[:200], success=False,
+                         iterations=0, seconds=0.0, cost=math.inf)
+        est = est0
+    return est, info
+
+
 def _fl(x: Any) -> float | None:
     x = float(x)
     return x if math.isfinite(x) else None

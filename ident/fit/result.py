@@ -99,7 +99,12 @@ class SolverReport:
     start : int
         Index of the winning start in ``starts``.
     starts : tuple of dict
-        Per start: initial gaps, final cost, status, iterations, seconds.
+        Per start and path: start index, path, initial gaps, final cost, status,
+        iterations, seconds.
+    path : str
+        How the winner got there: ``continued`` (horizon and smoothing-width
+        continuation) or ``held`` (the continuation with the gaps held at the
+        start, then freed at the final width).
     stages : tuple of dict
         The winning start's continuation stages.
     build_seconds : float
@@ -118,13 +123,14 @@ class SolverReport:
     stages: tuple = ()
     build_seconds: float = 0.0
     nlp: Mapping[str, Any] = field(default_factory=dict)
+    path: str = "continued"
 
     def to_dict(self) -> dict[str, Any]:
         return {"status": self.status, "iterations": int(self.iterations),
                 "seconds": _f(self.seconds), "converged": bool(self.converged),
                 "method": self.method, "start": int(self.start), "starts": list(self.starts),
                 "stages": list(self.stages), "build_seconds": _f(self.build_seconds),
-                "nlp": dict(self.nlp)}
+                "nlp": dict(self.nlp), "path": self.path}
 
 
 @dataclass(frozen=True)
