@@ -325,3 +325,60 @@ def test_writer_refuses_clashes(tmp_path, synth):
     with pytest.raises(RecordingError, match=r"time_format must be 'seconds' or 'iso'; got 'ms'"):
         write_recording(tmp_path / "r.csv", [a], time_format="ms")
     assert not [p for p in tmp_path.iterdir() if p.suffix != ".csv" or p.stat().st_size]
+
+
+@pytest.mark.parametrize("compression", ["NONE", "LZ4", "ZSTD"])
+def test_chunk_records_match_the_official_parser(tmp_path, synth, compression):
+    """Our record walker over a chunk = the mcap library's breakup_chunk, message for message
+    (payloads, channels, log-time order with ties kept), in every compression."""
+    from mcap.reader import make_reader
+    from mcap.records import Channel, Chunk, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+    from mcap.writer import CompressionType, Writer
+
+    from ident.io.mcap_reader import _chunk_bytes, chunk_records
+    from ident.io.sampleblock import encode_protobuf
+
+    dev = dataclasses.replace(synth.devices[0], data=synth.devices[0].data[:, :3000])
+    p = tmp_path / "c.mcap"
+    blocks = list(_blocks(dev, 100))
+    order = np.random.default_rng(1).permutation(len(blocks))
+    with open(p, "wb") as fh:
+        w = Writer(fh, compression=getattr(CompressionType, compression), chunk_size=20_000)
+        w.start()
+        sid = w.register_schema("ident.SampleBlock", "protobuf", protobuf_schema())
+        cids = [w.register_channel(f"/t{k}", "protobuf", sid) for k in range(2)]
+        for j, k in enumerate(order):
+            t0, d = blocks[k]
+            w.add_message(cids[j % 2], t0 - t0 % 10**8,  # equal log times: ties keep order
+                          encode_protobuf(t0, dev.rate_hz, dev.channels, dev.units, d), t0)
+        w.finish()
+    n = 0
+    with open(p, "rb") as fh:
+        for rec in StreamReader(fh, emit_chunks=True).records:
+            if not isinstance(rec, Chunk):
+                continue
+            ref = breakup_chunk(rec, validate_crc=True)
+            msgs = sorted((m for m in ref if isinstance(m, Message)), key=lambda m: m.log_time)
+            data = _chunk_bytes(rec, validate_crc=True)
+            defs, ours = chunk_records(data)
+            assert [(m.log_time, m.channel_id, m.data) for m in msgs] == \
+                [(t, c, data[a:b]) for t, c, a, b in ours]
+            assert [type(d) for d in defs] == [type(r) for r in ref
+                                               if isinstance(r, (Schema, Channel))]
+            n += len(ours)
+    assert n == len(blocks) and len(make_reader(open(p, "rb")).get_summary().chunk_indexes) >= 3
+
+
+def test_chunk_record_running_past_its_chunk_is_an_error():
+    import struct
+
+    from ident.io.mcap_reader import ChunkRecordError, chunk_records
+
+    msg = struct.pack("<HIQQ", 1, 0, 5, 5) + b"payload"
+    good = struct.pack("<BQ", 0x05, len(msg)) + msg
+    assert chunk_records(good)[1] == [(5, 1, 31, len(good))]
+    with pytest.raises(ChunkRecordError, match="runs 3 bytes past"):
+        chunk_records(struct.pack("<BQ", 0x05, len(msg) + 3) + msg)
+    with pytest.raises(ChunkRecordError, match="header at byte 38"):
+        chunk_records(good + b"\x05\x00")

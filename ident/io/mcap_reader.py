@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import struct
+import zlib
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -46,6 +47,89 @@ except ImportError:
     _ZstdError = ValueError
 
 
+_REC = struct.Struct("<BQ")
+_MSG = struct.Struct("<HIQ")  # channel_id, sequence, log_time (publish_time follows)
+_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x03, 0x04, 0x05
+
+
+class ChunkRecordError(ValueError):
+    """A chunk's records do not add up (a record runs past the chunk's end)."""
+
+
+def _chunk_bytes(chunk, validate_crc: bool) -> bytes:
+    """The chunk's uncompressed records, CRC-checked as the ``mcap`` library does."""
+    from mcap.stream_reader import CRCValidationError
+
+    if chunk.compression == "zstd":
+        import zstandard
+
+        data = zstandard.decompress(chunk.data, chunk.uncompressed_size)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.decompress(chunk.data)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        from mcap.exceptions import UnsupportedCompressionError
+
+        raise UnsupportedCompressionError(chunk.compression)
+    if validate_crc and chunk.uncompressed_crc != 0:
+        crc = zlib.crc32(data)
+        if crc != chunk.uncompressed_crc:
+            raise CRCValidationError(expected=chunk.uncompressed_crc, actual=crc, record=chunk)
+    return data
+
+
+def chunk_records(data: bytes) -> tuple[list, list[tuple[int, int, int, int]]]:
+    """Split a chunk's uncompressed records without building a Python object per message.
+
+    Returns
+    -------
+    defs : list
+        The Schema and Channel records (parsed by the ``mcap`` library), in order.
+    messages : list of (log_time, channel_id, start, end)
+        Each message's payload is ``data[start:end]``; sorted by log time (stable, as
+        the ``mcap`` library's reader yields them).
+
+    Raises
+    ------
+    ChunkRecordError
+        A record's length runs past the end of the chunk.
+    """
+    from io import BytesIO
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Channel, Schema
+
+    unpack_rec, unpack_msg = _REC.unpack_from, _MSG.unpack_from
+    n = len(data)
+    pos = 0
+    defs: list = []
+    msgs: list[tuple[int, int, int, int]] = []
+    append = msgs.append
+    while pos < n:
+        if pos + 9 > n:
+            raise ChunkRecordError(f"a record header at byte {pos} of the chunk's {n} is cut")
+        op, length = unpack_rec(data, pos)
+        body = pos + 9
+        pos = body + length
+        if pos > n:
+            raise ChunkRecordError(f"a record at byte {body - 9} runs {pos - n} bytes past "
+                                   f"the chunk's end")
+        if op == _OP_MESSAGE:
+            if length < 22:
+                raise ChunkRecordError(f"a message record at byte {body - 9} is too short")
+            ch, _seq, log_time = unpack_msg(data, body)
+            append((log_time, ch, body + 22, pos))
+        elif op == _OP_SCHEMA or op == _OP_CHANNEL:
+            stream = ReadDataStream(BytesIO(data[body:pos]))
+            defs.append(Schema.read(stream) if op == _OP_SCHEMA else Channel.read(stream))
+    if any(msgs[i][0] > msgs[i + 1][0] for i in range(len(msgs) - 1)):
+        msgs.sort(key=lambda m: m[0])
+    return defs, msgs
+
+
 def _why(exc: BaseException) -> str:
     text = str(exc).strip()
     name = type(exc).__name__
@@ -58,7 +142,8 @@ def _failures() -> tuple[type[BaseException], ...]:
     from mcap.exceptions import McapError
 
     return (McapError, EOFError, struct.error, ValueError, KeyError, IndexError, OSError,
-            RuntimeError, MemoryError, UnicodeDecodeError, _LZ4Error, _ZstdError)
+            RuntimeError, MemoryError, UnicodeDecodeError, _LZ4Error, _ZstdError,
+            ChunkRecordError)
 
 
 @dataclass
@@ -86,8 +171,9 @@ class _Placer:
         self.all_rows = len(rows) == len(block.channels)
         self.ref = block.t0_ns
         self.lo = 0
-        self.buf = np.full((len(rows), max(capacity, block.data.shape[1])), np.nan,
-                           dtype=np.float32)
+        # not prefilled: only the samples no block covers (the gaps) are set to NaN, at
+        # the end, so the untouched pages of a large buffer cost nothing until written
+        self.buf = np.empty((len(rows), max(capacity, block.data.shape[1])), dtype=np.float32)
         self.pos: list[int] = []
         self.n: list[int] = []
         self.t0: list[int] = []
@@ -102,7 +188,7 @@ class _Placer:
             new_cap = max(pos + n, self.lo + cap) - new_lo
             if i + n > cap:
                 new_cap = max(new_cap, int(cap * 1.5))
-            new = np.full((k, new_cap), np.nan, dtype=np.float32)
+            new = np.empty((k, new_cap), dtype=np.float32)
             new[:, self.lo - new_lo:self.lo - new_lo + cap] = self.buf
             self.buf, self.lo = new, new_lo
             i = pos - self.lo
@@ -150,6 +236,8 @@ class _Placer:
                     f"before by {int(prev_end[j] - nxt[j])} samples: time goes backwards; the "
                     "block read last wins", channel=names, t_start=t, device=self.topic)
         a, b = first - self.lo, last - self.lo
+        for g0, g1 in gaps:  # dropouts: NaN, never interpolated
+            self.buf[:, a + g0:a + g1] = np.nan
         data = self.buf[:, a:b]
         if self.buf.shape[1] > 1.1 * (b - a):
             data = np.ascontiguousarray(data)
@@ -174,11 +262,9 @@ class _Assembler:
         self.topics: dict[int, str] = {}
         self.placers: dict[str, _Placer] = {}
         self.skip_topics: set[str] = set()
-        self.last_good_ns: int | None = None
         self.corrupt_ns: list[tuple[int, int]] = []
         self.bad_messages: list[tuple[str, int, BlockDecodeError]] = []
         self.bad_times: list[tuple[str, int, int]] = []
-        self.n_blocks = 0
 
     def channel(self, channel, schema) -> None:
         if channel.id in self.decoders:
@@ -199,16 +285,21 @@ class _Assembler:
             self.decoders[channel.id] = None
 
     def message(self, msg) -> None:
-        decode = self.decoders.get(msg.channel_id)
+        """One ``mcap`` Message record."""
+        self.message_at(msg.channel_id, msg.log_time, msg.data, 0, len(msg.data))
+
+    def message_at(self, channel_id: int, log_time: int, data: bytes, a: int, b: int) -> None:
+        """The message of ``channel_id`` logged at ``log_time`` whose payload is data[a:b]."""
+        decode = self.decoders.get(channel_id)
         if decode is None:
             return
-        topic = self.topics[msg.channel_id]
+        topic = self.topics[channel_id]
         if topic in self.skip_topics:
             return
         try:
-            block = decode(msg.data)
+            block = decode(data[a:b] if a or b != len(data) else data)
         except BlockDecodeError as exc:
-            self.bad_messages.append((topic, msg.log_time, exc))  # reported with times later
+            self.bad_messages.append((topic, log_time, exc))  # reported with times later
             return
         if self.window is not None:
             block = _clip(block, *self.window)
@@ -221,9 +312,8 @@ class _Assembler:
                 self.placers[topic] = _Placer(topic, block, self.keep, 0)
                 self.placers[topic].put(block)
                 self.skip_topics.add(topic)
-                self._count(block)
                 return
-            cap = self.counts.get(msg.channel_id, 0) * block.data.shape[1]
+            cap = self.counts.get(channel_id, 0) * block.data.shape[1]
             if self.window is not None:
                 span = (self.window[1] - self.window[0]) * block.rate_hz / 1e9
                 cap = min(cap, int(span) + 2 * block.data.shape[1])
@@ -238,15 +328,20 @@ class _Assembler:
                                  f"at t0_ns={block.t0_ns} has {what}, earlier blocks {was}; "
                                  "expected one layout and rate per device (topic)",
                                  channel=",".join(block.channels))
-        if abs(msg.log_time - block.t0_ns) * block.rate_hz > 1e9:
-            self.bad_times.append((topic, msg.log_time, block.t0_ns))  # reported later
+        if abs(log_time - block.t0_ns) * block.rate_hz > 1e9:
+            self.bad_times.append((topic, log_time, block.t0_ns))  # reported later
         placer.put(block)
-        self._count(block)
 
-    def _count(self, block: Block) -> None:
-        end = block.t0_ns + int(block.data.shape[1] * 1e9 / block.rate_hz)
-        self.last_good_ns = end if self.last_good_ns is None else max(self.last_good_ns, end)
-        self.n_blocks += 1
+    @property
+    def n_blocks(self) -> int:
+        """Sample blocks placed so far."""
+        return sum(len(p.pos) for p in self.placers.values())
+
+    @property
+    def last_good_ns(self) -> int:
+        """End of the latest block placed, ns since the epoch."""
+        return max(p.ref + int((max(np.add(p.pos, p.n)) * 1e9) / p.rate)
+                   for p in self.placers.values() if p.pos)
 
 
 def _clip(block: Block, lo_ns: int, hi_ns: int) -> Block | None:
@@ -284,7 +379,7 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog,
         timestamps, or a device whose channels change.
     """
     from mcap.data_stream import ReadDataStream
-    from mcap.reader import breakup_chunk, make_reader
+    from mcap.reader import make_reader
     from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -316,6 +411,7 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog,
             content.origin_ns = start
             asm.window = (start + int(window_ns[0]), start + int(window_ns[1]))
         if indexed:
+            schemas_in_chunks: dict[int, object] = {}
             for ch in summary.channels.values():
                 asm.channel(ch, summary.schemas.get(ch.schema_id))
             for ci in sorted(summary.chunk_indexes,
@@ -327,16 +423,24 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog,
                 try:
                     fh.seek(ci.chunk_start_offset + 1 + 8)
                     chunk = Chunk.read(ReadDataStream(fh))
-                    records = breakup_chunk(chunk, validate_crc=True)
+                    data = _chunk_bytes(chunk, validate_crc=True)
+                    defs, msgs = chunk_records(data)
                 except failures as exc:
                     bad_chunks.append((ci.message_start_time, ci.message_end_time,
                                        ci.chunk_start_offset, exc))
                     asm.corrupt_ns.append((ci.message_start_time, ci.message_end_time))
                     continue
-                msgs = [r for r in records if isinstance(r, Message)]
-                msgs.sort(key=lambda m: m.log_time)
-                for m in msgs:
-                    asm.message(m)
+                if defs:  # channels defined only inside chunks (not in the summary)
+                    for d in defs:
+                        if isinstance(d, Schema):
+                            schemas_in_chunks[d.id] = d
+                    for d in defs:
+                        if isinstance(d, Channel) and d.id not in asm.decoders:
+                            asm.channel(d, summary.schemas.get(d.schema_id)
+                                        or schemas_in_chunks.get(d.schema_id))
+                message = asm.message_at
+                for log_time, channel_id, a, b in msgs:
+                    message(channel_id, log_time, data, a, b)
             try:
                 for md in reader.iter_metadata():
                     if md.name == "ident.recording":
