@@ -2,7 +2,9 @@
 #   make demo   -- simulate a small campaign, fit it into a results store, write the report
 #   make test   -- run the whole test suite (slow tests included)
 # Both create or reuse the virtual environment in .venv and install what they need.
-# Tests run with OMP_NUM_THREADS=1: two xdist workers on two cores, no thread oversubscription.
+# Tests run with OMP_NUM_THREADS=1: two xdist workers on two cores, no thread oversubscription;
+# --dist loadscope runs each test module on one worker: a module fixture (a fitted campaign,
+# the hidden-effect cases) is computed once, not once per worker.
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -25,10 +27,10 @@ demo: $(STAMP)
 	$(PY) -m pipelines.demo
 
 test: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) -q
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) --dist loadscope -q
 
 test-fast: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) -q -m "not slow"
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) --dist loadscope -q -m "not slow"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from ident.report import build_report
-from ident.store import load_results, make_sample_campaign, open_store, run_campaign
+from ident.store import Settings, load_results, make_sample_campaign, open_store, run_campaign
 from ident.store.campaign import CampaignError
 
 from test_campaign_doubles import double_process, make_double_campaign
@@ -44,15 +44,18 @@ def test_dask_local_cluster_real_pipeline(dask_cluster, mill, tmp_path):
     sample = make_sample_campaign(tmp_path / "c", mill, n_recordings=2, bars=1, days=3.0,
                                   bearings=False, csv_every=0, n_bad=1, seed=11)
     url = f"sqlite:///{tmp_path}/r.db"
+    # the real per-recording pipeline on dask workers (read, quality, segments, TAF); the fit
+    # stage is off here because its cost is the fit's, tested in test_campaign_e2e
+    quick = Settings(fit=False, diagnose=False)
     s = run_campaign(sample.folder, mill, url, scheduler=dask_cluster.scheduler_address,
-                     progress=False)
+                     progress=False, settings=quick)
     assert s.executor.startswith("dask:tcp://")
     assert (s.n_done, s.n_failed) == (2, 1)
     assert "truncated.mcap" in s.failed[0][0]
     rec = load_results(url)["recordings"]
     assert rec["worker"].notna().all()
     again = run_campaign(sample.folder, mill, url, scheduler=dask_cluster.scheduler_address,
-                         progress=False)
+                         progress=False, settings=quick)
     assert again.n_skipped == 3 and again.n_done == 0
 
 

@@ -50,6 +50,9 @@ def test_fit_writes_the_cli_json(tmp_path, mill, mill_path, recording, capsys):
     assert s["status"] == "Solve_Succeeded" and s["converged"] is True
     assert s["iterations"] > 0 and s["seconds"] > 0
     assert doc["windows_used"] and doc["recording"] == str(recording.path)
+    # --held auto: the continued fit reached the noise floor, so no held path was run
+    assert doc["metrics"]["reached_noise_floor"] is True
+    assert [st["path"] for st in s["starts"]] == ["continued"] and s["path"] == "continued"
     for eid in ("C46", "C57"):  # the worn spindles, measured directly
         assert doc["elements"][eid]["gap"] == pytest.approx(TRUTH[f"{eid}.gap"], rel=0.1)
 
@@ -66,6 +69,8 @@ def test_fit_not_converged_writes_json_and_exits_1(tmp_path, mill_path, recordin
     assert doc["solver"]["converged"] is False
     assert doc["solver"]["status"] == "Maximum_Iterations_Exceeded"
     assert set(doc["elements"]) >= {"C46", "C57"}
+    # --held auto: nothing converged, so the held path was tried too
+    assert [s["path"] for s in doc["solver"]["starts"]] == ["continued", "held"]
 
 
 def test_corrupt_recording_exits_2_naming_the_file(tmp_path, mill_path, recording, capsys):
@@ -104,13 +109,45 @@ def test_unknown_set_key_exits_2(mill_path, recording, capsys):
 
 
 def test_held_path_is_reported(tmp_path, mill_path, recording):
-    """--held: every start also runs with the gaps held through the continuation."""
+    """--held always: every start also runs with the gaps held through the continuation."""
     out = tmp_path / "fit.json"
     main(["fit", str(recording.path), "--mill", str(mill_path), "--out", str(out), "--held",
-          "--no-uncertainty"] + CLI)
+          "always", "--no-uncertainty"] + CLI)
     doc = json.loads(out.read_text())
     assert [s["path"] for s in doc["solver"]["starts"]] == ["continued", "held"]
     assert doc["solver"]["path"] in ("continued", "held")
     best = min(s["cost"] for s in doc["solver"]["starts"] if s["converged"])
     assert any(s["cost"] == best and s["path"] == doc["solver"]["path"]
                for s in doc["solver"]["starts"])
+
+
+def test_start_from_an_earlier_fit(tmp_path, mill, mill_path, recording):
+    """--start-from: the start is the earlier fit's gaps (--set still wins), reported."""
+    prev = tmp_path / "prev.json"
+    gaps = {e.id: e.gap for e in mill.elements}
+    gaps.update({"C46": 0.0051, "C57": 0.0032})
+    prev.write_text(json.dumps({"mill": mill.name, "elements": {
+        k: {"gap": v, "gap_open": 0.0} for k, v in gaps.items()}}))
+    out = tmp_path / "fit.json"
+    main(["fit", str(recording.path), "--mill", str(mill_path), "--out", str(out),
+          "--start-from", str(prev), "--set", "C12.gap=0.0012", "--no-uncertainty",
+          "--held", "never"] + CLI)
+    start = json.loads(out.read_text())["solver"]["starts"][0]["gaps"]
+    assert start == pytest.approx({**gaps, "C12": 0.0012})
+
+
+@pytest.mark.parametrize("content, match", [
+    (None, "cannot read a fit JSON"),
+    ("{not json", "cannot read a fit JSON"),
+    ('{"mill": "other", "elements": {"C46": {"gap": 0.004}}}', "not 'hsm-f1'"),
+    ('{"mill": "hsm-f1", "elements": {"C99": {"gap": 0.004}}}', "no gap of the mill's"),
+    ('[1, 2]', "not an 'ident fit' JSON"),
+])
+def test_start_from_a_bad_file_exits_2(tmp_path, mill_path, recording, capsys, content, match):
+    prev = tmp_path / "prev.json"
+    if content is not None:
+        prev.write_text(content)
+    assert main(["fit", str(recording.path), "--mill", str(mill_path), "--start-from",
+                 str(prev), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0] and "prev.json" in err[0]

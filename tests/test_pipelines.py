@@ -20,18 +20,18 @@ def test_demo_end_to_end_and_rerun(tmp_path, capsys):
     from pipelines import demo
 
     out = tmp_path / "demo"
-    args = ["--out", str(out), "--recordings", "3", "--bars", "1", "--days", "10",
+    args = ["--out", str(out), "--recordings", "2", "--bars", "1", "--days", "10",
             "--workers", "0", "--quiet"]
     assert demo.run(args) == 0
     printed = capsys.readouterr().out
     assert f"Report: {(out / 'report.html').resolve()}" in printed
     summary = json.loads((out / "campaign.json").read_text())
-    assert (summary["done"], summary["failed"]) == (3, 2)
+    assert (summary["done"], summary["failed"]) == (2, 2)
     html = (out / "report.html").read_text()
     assert "At a glance" in html and "Failed recordings (2)" in html
     assert demo.run(args) == 0  # the rerun reuses recordings and redoes nothing
     summary = json.loads((out / "campaign.json").read_text())
-    assert (summary["skipped"], summary["done"]) == (5, 0)
+    assert (summary["skipped"], summary["done"]) == (4, 0)
     assert "reusing the recordings" in capsys.readouterr().err
 
 

@@ -36,13 +36,17 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
+from pathlib import Path
 from typing import Any
 
 from ..errors import ConvergenceWarning, FitError
 from ..fit import Collocation, SingleShooting, fit_gaps, windows_from_recording
 from ..io.readers import read_recording
 from ..segment import segment_transients
-from .common import add_common, load_mill_arg, write_json
+from .common import add_common, load_mill_arg, parse_sets, write_json
+
+#: --held choices -> fit_gaps(direct=...)
+HELD = {"auto": "auto", "always": True, "never": False}
 
 #: Exit code of a fit that ran but did not converge.
 EXIT_NOT_CONVERGED = 1
@@ -68,6 +72,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--starts", type=int, default=1, metavar="N",
                    help="starts: the mill file's gaps, then N-1 random ones (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts")
+    p.add_argument("--start-from", metavar="FIT.json", default=None,
+                   help="start at the gaps of an earlier 'ident fit' JSON of this mill (e.g. "
+                        "the last recording's) instead of the mill file's: gaps grow slowly, "
+                        "and a start near them finds worn gaps the designed ones miss")
     p.add_argument("--max-transients", type=int, default=None, metavar="N",
                    help="fit at most N transient windows (default: the fit's default, 4)")
     p.add_argument("--window-s", type=float, default=None, metavar="S",
@@ -75,10 +83,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-iter", type=int, default=None, metavar="N",
                    help="solver iterations per continuation stage (IPOPT max_iter / "
                         "least_squares max_nfev)")
-    p.add_argument("--held", action="store_true",
+    p.add_argument("--held", choices=("auto", "always", "never"), default="auto",
                    help="also run each start's continuation with the gaps held at the start, "
-                        "freed at the final width, and keep the better (for a start near the "
-                        "truth, e.g. the last identified gaps; about twice the time)")
+                        "freed at the final width, and keep the better: 'auto' (default) only "
+                        "when the continued fit stays above the noise floor, 'always' (e.g. "
+                        "from the last identified gaps; about twice the time) or 'never'")
     p.add_argument("--no-uncertainty", action="store_true",
                    help="skip standard errors and intervals (faster)")
 
@@ -106,12 +115,53 @@ def _windows_kw(args: argparse.Namespace) -> dict[str, Any]:
     return kw
 
 
+def start_from_fit(path: str, mill_name: str, element_ids: tuple[str, ...]) -> dict[str, float]:
+    """The gaps of an earlier fit's JSON, as a start ``{element: gap}``.
+
+    Raises
+    ------
+    FitError
+        The file cannot be read, is not a fit of ``mill_name``, or lacks gaps.
+    """
+    import json
+    import math
+
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FitError(f"--start-from {path}: cannot read a fit JSON ({exc})") from None
+    els = doc.get("elements") if isinstance(doc, dict) else None
+    if not isinstance(els, dict):
+        raise FitError(f"--start-from {path}: not an 'ident fit' JSON (no 'elements' object)")
+    if doc.get("mill") not in (None, mill_name):
+        raise FitError(f"--start-from {path}: a fit of mill {doc.get('mill')!r}, not "
+                       f"{mill_name!r}")
+    start = {}
+    for eid, el in els.items():
+        gap = el.get("gap") if isinstance(el, dict) else None
+        if eid in element_ids and isinstance(gap, (int, float)) and math.isfinite(gap) \
+                and gap >= 0:
+            start[eid] = float(gap)
+    if not start:
+        raise FitError(f"--start-from {path}: no gap of the mill's elements "
+                       f"{list(element_ids)} in it")
+    return start
+
+
 def run(args: argparse.Namespace) -> int:
     if args.starts < 1:
         raise FitError(f"--starts must be at least 1. Got {args.starts}.")
+    if args.start_from is not None and args.starts > 1:
+        raise FitError("--start-from gives the one start; drop --starts (or use --set for "
+                       "more)")
     method = _method(args)
     wkw = _windows_kw(args)
     mill = load_mill_arg(args)
+    starts = None
+    if args.start_from is not None:  # checked before the (long) read
+        over = {k.split(".")[0]: float(v) for k, v in parse_sets(args.set or []).items()
+                if k.endswith(".gap") and isinstance(v, float)}  # --set wins
+        starts = [{**start_from_fit(args.start_from, mill.name, mill.element_ids), **over}]
     rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
     segments = segment_transients(rec, mill)
     if not segments:
@@ -124,8 +174,8 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # reported below, once
         result = fit_gaps(mill, windows, family=args.family, method=method,
-                          n_starts=args.starts, random_state=args.seed,
-                          uncertainty=not args.no_uncertainty, direct=args.held,
+                          n_starts=args.starts, random_state=args.seed, starts=starts,
+                          uncertainty=not args.no_uncertainty, direct=HELD[args.held],
                           progress=not args.quiet)
     doc = result.to_dict()
     doc["recording"] = str(args.recording)
@@ -146,7 +196,9 @@ def run(args: argparse.Namespace) -> int:
     if not result.reached_noise_floor:
         print(f"ident fit: error: the fit converged but its residuals stay "
               f"{result.noise_ratio:.2f} times the sensor noise's variance (a local minimum or "
-              f"a missing effect; try --starts 4); the reported gaps are not an identification",
+              f"a missing effect; try --start-from the fit of an earlier recording of this mill, or "
+              f"--set ID.gap=... near the expected gaps); the reported gaps are not an "
+              f"identification",
               file=sys.stderr)
         return EXIT_NOT_CONVERGED
     return 0

@@ -75,7 +75,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
              random_state: int | np.random.Generator | None = 0, min_start_gap: float = 5e-4,
              gap_max: float | None = None, open_frac: float = 0.5,
              fixed: dict[str, float] | None = None, effects: Sequence = (),
-             uncertainty: bool = True, direct: bool = False,
+             uncertainty: bool = True, direct: bool | str = "auto",
              progress: bool = False) -> FitResult:
     """Identify every element's gap from measured transient windows.
 
@@ -113,7 +113,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         Extra model terms (discrepancy workflow), parameters at their defaults.
     uncertainty : bool
         Compute standard errors and intervals.
-    direct : bool
+    direct : bool or "auto"
         g1 only: also run each start's whole continuation with the gaps held
         at the start, then free them at the final smoothing width only, and
         keep whichever of the two paths ends at the lower cost
@@ -122,8 +122,11 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         first widths (1 mrad) can lead away from a good start: on a demo
         recording with 1-2 mrad gaps, started at its true gaps, the continued
         fit ended at 5.1 times the noise variance, the gaps held through the
-        continuation at 0.99.  Off by default: it costs a second solve per start
-        (a 4-window recording of ``tests/test_fit.py``: 243 s -> 610 s).
+        continuation at 0.99.  It costs a second solve per start (a 4-window
+        recording of ``tests/test_fit.py``: 243 s -> 610 s), so ``"auto"``
+        (default) runs it only when the best continued fit stays above the
+        noise floor (``NOISE_RATIO_MAX`` times the noise variance); ``True``
+        always, ``False`` never.
     progress : bool
         Progress bar on stderr.
 
@@ -197,17 +200,27 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     runs = []
     held = problem.with_free(np.zeros(model.n_shared, dtype=bool))
     final = (_final_width(method),)
+    if direct not in (True, False, "auto"):
+        raise FitError(f"direct must be True, False or 'auto'. Got {direct!r}.")
     paths = [("continued", method.settle, None, None)]
-    if direct and model.family is Family.G1:
-        paths.append(("held", None, final, ()))
-    for k, sv in enumerate(start_vecs):
-        base = _start_from_baseline(problem, lin_est, sv, open_frac)
+    held_path = ("held", None, final, ())
+    if direct is True and model.family is Family.G1:
+        paths.append(held_path)
+    bases = [_start_from_baseline(problem, lin_est, sv, open_frac) for sv in start_vecs]
+    for k, (sv, base) in enumerate(zip(start_vecs, bases)):
         for path, settle, widths, horizons in paths:
             est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
             build_s += info.build_seconds
             runs.append((k, sv, est, info, path))
         if bar:
             bar.update(1)
+    if direct == "auto" and model.family is Family.G1 and \
+            _above_noise_floor(method, problem, runs):
+        for k, (sv, base) in enumerate(zip(start_vecs, bases)):
+            path, settle, widths, horizons = held_path
+            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
+            build_s += info.build_seconds
+            runs.append((k, sv, est, info, path))
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
     k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
@@ -369,6 +382,15 @@ def _residuals(method: Any, problem: Problem, est: Estimate) -> np.ndarray:
         return method.residual_vector(problem, est)
     r, _ = method.residuals(problem, est, est.extra.get("width", _final_width(method)))
     return r
+
+
+def _above_noise_floor(method: Any, problem: Problem, runs: list) -> bool:
+    """Whether the best converged run's residuals stay above the noise floor (or none converged)."""
+    ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
+    if not ok:
+        return True
+    best = min(ok, key=lambda r: r[3].cost)
+    return _noise_ratio(_residuals(method, problem, best[2]), problem) > NOISE_RATIO_MAX
 
 
 def _noise_ratio(r: np.ndarray, problem: Problem) -> float:
