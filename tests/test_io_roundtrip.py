@@ -382,3 +382,21 @@ def test_chunk_record_running_past_its_chunk_is_an_error():
         chunk_records(struct.pack("<BQ", 0x05, len(msg) + 3) + msg)
     with pytest.raises(ChunkRecordError, match="header at byte 38"):
         chunk_records(good + b"\x05\x00")
+
+
+def test_large_buffers_are_writable_maps_and_small_ones_plain():
+    import mmap
+
+    from ident.io.grid import MMAP_MIN_BYTES, empty_buffer
+
+    big = empty_buffer((3, MMAP_MIN_BYTES // 4), np.float32)
+    assert big.shape == (3, MMAP_MIN_BYTES // 4) and big.dtype == np.float32
+    assert big.flags.writeable and big.flags.c_contiguous
+    base = big
+    while isinstance(base, np.ndarray):  # reshape view -> frombuffer array -> memoryview
+        base = base.base
+    assert isinstance(base, memoryview) and isinstance(base.obj, mmap.mmap)
+    big[2, -1] = 7.0
+    assert big[2, -1] == 7.0
+    small = empty_buffer((4, 8), np.float64)
+    assert small.flags.owndata and small.shape == (4, 8) and small.dtype == np.float64

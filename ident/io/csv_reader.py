@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import RecordingError
-from .grid import DeviceGrid
+from .grid import DeviceGrid, empty_buffer
 from .quality import IssueLog
 
 __all__ = ["read_csv", "split_header", "csv_siblings", "first_time", "last_time"]
@@ -309,8 +309,8 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
         if offset:
             reader_opts = pacsv.ReadOptions(skip_rows=0, column_names=col_names,
                                             block_size=block, use_threads=False)
-    t_buf = np.empty(cap, dtype=np.int64 if iso else np.float64)
-    d_buf = np.empty((len(kept), cap), dtype=np.float32)
+    t_buf = empty_buffer((cap,), np.int64 if iso else np.float64)
+    d_buf = empty_buffer((len(kept), cap), np.float32)
     n = 0
     try:
         source = path
@@ -334,8 +334,10 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
                 m = sel.size
             if n + m > t_buf.size:
                 new_cap = max(n + m, int(t_buf.size * 1.25))
-                t_buf = np.concatenate([t_buf[:n], np.empty(new_cap - n, dtype=t_buf.dtype)])
-                nd = np.empty((len(kept), new_cap), dtype=np.float32)
+                nt = empty_buffer((new_cap,), t_buf.dtype)
+                nt[:n] = t_buf[:n]
+                t_buf = nt
+                nd = empty_buffer((len(kept), new_cap), np.float32)
                 nd[:, :n] = d_buf[:, :n]
                 d_buf = nd
             if sel is not None:
@@ -464,7 +466,8 @@ def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns:
         shift = np.zeros(n, dtype=np.int64)
         shift[at + 1] = extra
         pos = np.arange(n, dtype=np.int64) + np.cumsum(shift)
-        grid = np.full((data.shape[0], int(pos[-1]) + 1), np.nan, dtype=np.float32)
+        grid = empty_buffer((data.shape[0], int(pos[-1]) + 1), np.float32)
+        grid.fill(np.nan)
         grid[:, pos] = data
         data = grid
         for j in at.tolist():

@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from .grid import DeviceGrid
+from .grid import DeviceGrid, empty_buffer
 from .quality import RATE_TOLERANCE, IssueLog
 from .sampleblock import SCHEMA_NAME, Block, BlockDecodeError, make_decoder
 
@@ -173,7 +173,7 @@ class _Placer:
         self.lo = 0
         # not prefilled: only the samples no block covers (the gaps) are set to NaN, at
         # the end, so the untouched pages of a large buffer cost nothing until written
-        self.buf = np.empty((len(rows), max(capacity, block.data.shape[1])), dtype=np.float32)
+        self.buf = empty_buffer((len(rows), max(capacity, block.data.shape[1])), np.float32)
         self.pos: list[int] = []
         self.n: list[int] = []
         self.t0: list[int] = []
@@ -188,7 +188,7 @@ class _Placer:
             new_cap = max(pos + n, self.lo + cap) - new_lo
             if i + n > cap:
                 new_cap = max(new_cap, int(cap * 1.5))
-            new = np.empty((k, new_cap), dtype=np.float32)
+            new = empty_buffer((k, new_cap), np.float32)
             new[:, self.lo - new_lo:self.lo - new_lo + cap] = self.buf
             self.buf, self.lo = new, new_lo
             i = pos - self.lo

@@ -31,7 +31,7 @@ from ..description import Mill, Quantity
 from ..errors import DataQualityWarning, RecordingError
 from ..units import normalize_unit, quantity_of_unit, to_si_factor
 from .csv_reader import first_time, last_time, read_csv
-from .grid import DeviceGrid
+from .grid import DeviceGrid, empty_buffer
 from .mcap_reader import MAX_BLOCK_NS, mcap_span_ns, read_mcap
 from .quality import IssueLog, gap_issues, gap_mask_of, scan_channel
 from .recording import Recording
@@ -299,7 +299,7 @@ def _assemble(p: Path, grids: list[DeviceGrid], mill: Mill | None, log: IssueLog
                 row += np.float32(b)
         n = g.n_samples
         idx = g.time_buffer if g.time_buffer is not None and g.time_buffer.size == n \
-            else np.empty(n, dtype=np.float64)
+            else empty_buffer((n,), np.float64)
         step = 1 << 20
         for s in range(0, n, step):
             e = min(n, s + step)
