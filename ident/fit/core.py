@@ -200,11 +200,12 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     runs = []
     held = problem.with_free(np.zeros(model.n_shared, dtype=bool))
     final = (_final_width(method),)
-    if direct not in (True, False, "auto"):
+    if isinstance(direct, str) and direct != "auto":
         raise FitError(f"direct must be True, False or 'auto'. Got {direct!r}.")
+    auto = direct == "auto"
     paths = [("continued", method.settle, None, None)]
     held_path = ("held", None, final, ())
-    if direct is True and model.family is Family.G1:
+    if not auto and bool(direct) and model.family is Family.G1:
         paths.append(held_path)
     bases = [_start_from_baseline(problem, lin_est, sv, open_frac) for sv in start_vecs]
     for k, (sv, base) in enumerate(zip(start_vecs, bases)):
@@ -214,7 +215,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             runs.append((k, sv, est, info, path))
         if bar:
             bar.update(1)
-    if direct == "auto" and model.family is Family.G1 and \
+    if auto and model.family is Family.G1 and \
             _above_noise_floor(method, problem, runs):
         for k, (sv, base) in enumerate(zip(start_vecs, bases)):
             path, settle, widths, horizons = held_path
