@@ -1,7 +1,8 @@
 # Two commands set everything up on a fresh machine:
 #   make demo   -- simulate a small campaign, fit it into a results store, write the report
 #   make test   -- run the whole test suite (slow tests included)
-# Both create or reuse the virtual environment in .venv and install what they need.
+# Both create or reuse the virtual environment in .venv and install what they need, pinned by
+# constraints.txt (the versions the suite passed with; regenerate with `make constraints`).
 # Tests run with OMP_NUM_THREADS=1: two xdist workers on two cores, no thread oversubscription;
 # --dist loadscope runs each test module on one worker: a module fixture (a fitted campaign,
 # the hidden-effect cases) is computed once, not once per worker.
@@ -9,15 +10,15 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY      = $(VENV)/bin/python
-STAMP   = $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
+STAMP   = $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | sha256sum | cut -c1-12)
 JOBS   ?= 2
 
-.PHONY: venv demo test test-fast bench sample-data clean
+.PHONY: venv demo test test-fast bench sample-data clean constraints validate
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test,dask,postgres]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[test,dask,postgres]"
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
@@ -37,6 +38,9 @@ bench: $(STAMP)
 
 sample-data: $(STAMP)
 	$(PY) -m pipelines.sample_data
+
+constraints: $(STAMP)
+	$(PY) -m pip freeze --exclude-editable | grep -v "^-e" | sort -f > constraints.txt
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
