@@ -158,32 +158,77 @@ def test_csv_dropout_and_injected_nans(tmp_path, mill, torque):
     assert len(f) == n and np.isnan(f["T_C12"].to_numpy()[2000:2200]).all()
 
 
-def test_csv_swapped_timestamps(tmp_path, mill, torque):
+# Time that steps back or repeats is an error naming the file and the time (telemetry.md:
+# "the order of samples is not guessed"); these were sorted / "later block wins" findings.
+def test_csv_swapped_timestamps_are_fatal(tmp_path, mill, torque):
     n = 4000
     t = np.arange(n) / torque.rate_hz
     t[[1000, 1001]] = t[[1001, 1000]]
     df = pd.DataFrame({"time": t, "T_C12 [kN*m]": torque.data[0, :n]})
     p = tmp_path / "swapped.csv"
     df.to_csv(p, index=False)
-    rec = read_recording(p, mill, warn=False)
-    issue = only(rec, "non_monotonic")[0]
-    assert issue.t_start == pytest.approx(0.5)
-    assert "rows sorted by time" in issue.message
-    x = rec.channel("T_C12").to_numpy()
-    assert len(x) == n
-    assert x[1000] == pytest.approx(torque.data[0, 1001] * 1e3)  # values follow their times
+    with pytest.raises(RecordingError, match=r"swapped\.csv, t=0\.500000 s: non monotonic: time "
+                       r"steps back from t=0\.500500 s to t=0\.500000 s; expected strictly "
+                       r"increasing times") as err:
+        read_recording(p, mill, warn=False)
+    assert err.value.path == str(p) and err.value.time == pytest.approx(0.5)
 
 
-def test_mcap_overlapping_blocks(tmp_path, mill, torque):
+def test_csv_repeated_time_is_fatal(tmp_path, mill, torque):
+    t = np.arange(2000) / torque.rate_hz
+    t[700] = t[699]
+    p = tmp_path / "repeat.csv"
+    pd.DataFrame({"time": t, "T_C12 [kN*m]": torque.data[0, :2000]}).to_csv(p, index=False)
+    with pytest.raises(RecordingError, match=r"repeat\.csv, t=0\.349500 s: non monotonic: time "
+                       r"repeats: t=0\.349500 s twice"):
+        read_recording(p, mill, warn=False)
+
+
+def test_mcap_overlapping_blocks_are_fatal(tmp_path, mill, torque):
     blocks = blocks_of(torque)
     t0, d = blocks[5]
     blocks.insert(8, (t0 + 50 * 500_000, d))  # a block whose time goes backwards
     p = tmp_path / "overlap.mcap"
     write_blocks(p, torque, blocks)
+    with pytest.raises(RecordingError, match=r"overlap\.mcap, channel 'T_C12,T_C34,T_C46,T_C57', "
+                       r"t=0\.525000 s: non monotonic: device '/telemetry/torque': a sample block "
+                       r"starts at t=0\.525000 s, not after the last sample \(t=0\.599500 s\)"):
+        read_recording(p, mill, warn=False)
+
+
+def test_mcap_repeated_block_is_fatal(tmp_path, mill, torque):
+    blocks = blocks_of(torque)
+    blocks.append(blocks[3])  # the same block again, at the end of the file
+    p = tmp_path / "again.mcap"
+    write_blocks(p, torque, blocks)
+    with pytest.raises(RecordingError, match=r"again\.mcap, .*t=0\.300000 s: non monotonic: "
+                       r"device '/telemetry/torque': a sample block repeats the start "
+                       r"t=0\.300000 s of another block"):
+        read_recording(p, mill, warn=False)
+
+
+def test_mcap_blocks_out_of_file_order_are_read_in_time_order(tmp_path, mill, torque):
+    blocks = blocks_of(torque)
+    blocks[4], blocks[9] = blocks[9], blocks[4]  # arrival order is not time order
+    p = tmp_path / "shuffled.mcap"
+    write_blocks(p, torque, blocks)
+    rec = read_recording(p, mill, warn=False)
+    assert rec.issues == ()
+    np.testing.assert_allclose(rec.channel("T_C12").to_numpy(), torque.data[0] * 1e3, rtol=1e-6)
+
+
+def test_mcap_block_less_than_a_sample_late_is_a_finding(tmp_path, mill, torque):
+    """A block starting 0.4 samples after the previous block's last sample (a clock
+    hiccup): time still increases, so it is read; its first sample shares a grid point."""
+    blocks = blocks_of(torque)
+    t0, d = blocks[6]
+    blocks[6] = (t0 - 300_000, d)  # 0.6 samples early at 2 kHz
+    p = tmp_path / "early.mcap"
+    write_blocks(p, torque, blocks)
     rec = read_recording(p, mill, warn=False)
     issue = only(rec, "non_monotonic")[0]
-    assert "overlaps the one before by 150 samples" in issue.message
-    assert issue.t_start == pytest.approx(0.525)
+    assert "starts less than a sample after the last sample of the block before" in issue.message
+    assert issue.t_start == pytest.approx(0.5995)
 
 
 def test_log_time_disagreeing_with_t0(tmp_path, mill, torque):
@@ -225,8 +270,9 @@ def test_csv_with_two_rates_is_fatal(tmp_path, mill, torque):
     df = pd.DataFrame({"time": t, "T_C12 [kN*m]": torque.data[0, : t.size]})
     p = tmp_path / "tworates.csv"
     df.to_csv(p, index=False)
-    with pytest.raises(RecordingError, match=r"rate mismatch: tworates\.csv: the time steps are "
-                       r"not one rate: the median step is 0\.0005 s \(2000 Hz\)") as err:
+    with pytest.raises(RecordingError, match=r"tworates\.csv, channel 'T_C12', t=1\.001000 s: "
+                       r"rate mismatch: the time steps are not one rate: the median step is "
+                       r"0\.0005 s \(2000 Hz\)") as err:
         read_recording(p, mill)
     assert err.value.time == pytest.approx(1.0, abs=0.002)
 
@@ -397,11 +443,15 @@ def test_device_changing_its_channels_is_fatal(tmp_path, mill, torque):
 
 
 @pytest.mark.parametrize("text, match", [
-    ("", r"the CSV file has no header line"),
+    ("", r"bad\.csv: unreadable: the file is empty \(0 bytes\)"),
+    ("# only a comment\n\n", r"the CSV file has no header line"),
     ("time T_C12\n0 1\n", r"has no ',', ';' or tab separator"),
     ("time,T_C12\n", r"the CSV file has a header but no data rows"),
     ("time,T_C12\n0.0,1.0\n", r"a single row; cannot tell the sample rate"),
-    ("time,T_C12\n0.0,1.0\n0.001,abc\n", r"cannot parse the CSV file after row 1"),
+    ("time,T_C12\n0.0,1.0\n0.001,abc\n", r"bad\.csv, channel 'T_C12', t=0\.001000 s: "
+                                          r"unreadable: line 3: the value 'abc' is not a number"),
+    ("time,T_C12\n0.0,1.0\n0.001,2.0,3.0\n", r"bad\.csv, t=0\.001000 s: unreadable: line 3 has 3 "
+                                              r"fields but the header has 2"),
     ("time,T_C12,T_C12\n0.0,1,1\n0.001,2,2\n", r"channel\(s\) \['T_C12'\] appear in more than "
                                                 r"one column"),
     ("time,T_C12\nyesterday,1\ntoday,2\n", r"neither float seconds nor an ISO-8601 timestamp"),

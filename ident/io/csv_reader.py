@@ -48,13 +48,41 @@ def csv_siblings(path: Path) -> list[Path]:
     """The sibling files ``name.<device>.csv`` of ``name.csv``, sorted."""
     pattern = re.compile(re.escape(path.stem) + r"\.[A-Za-z0-9_\-]+" + re.escape(path.suffix) + "$")
     return sorted(p for p in path.parent.iterdir()
-                  if p != path and pattern.match(p.name) and not p.name.startswith("."))
+                  if p != path and pattern.match(p.name) and not p.name.startswith(".")
+                  and p.is_file())
+
+
+class _FileLog:
+    """The log of one file of a CSV recording (the key file or a sibling device file).
+
+    Fatal errors name this file; findings go to the recording's log, their message
+    naming the file when it is a sibling (the finding's path is the key file's).
+    """
+
+    def __init__(self, log: IssueLog, path: Path) -> None:
+        self.log = log
+        self.path = str(path)
+        self.tag = "" if self.path == log.path else f"{path.name}: "
+
+    def fatal(self, kind: str, message: str, **kw) -> RecordingError:
+        return self.log.fatal(kind, message, path=self.path, **kw)
+
+    def add(self, kind: str, message: str, **kw) -> None:
+        self.log.add(kind, self.tag + message, **kw)
+
+
+def _file_log(log: IssueLog | _FileLog, path: Path) -> _FileLog:
+    return log if isinstance(log, _FileLog) and log.path == str(path) else \
+        _FileLog(log.log if isinstance(log, _FileLog) else log, path)
 
 
 def _sniff(path: Path, log: IssueLog) -> tuple[int, str, list[str], list[str], str]:
     """Comment lines, separator, raw column names, first data row, decimal mark."""
-    with open(path, "rb") as fh:
-        head = fh.read(1 << 16)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError as exc:
+        raise log.fatal("unreadable", f"cannot read the file ({exc.strerror or exc})") from None
     text = head.decode("utf-8-sig", errors="replace")
     lines = text.splitlines()
     n_comment = 0
@@ -137,7 +165,8 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
     """
     p = Path(path)
     if not p.is_file():
-        raise log.fatal("unreadable", "file not found")
+        raise log.fatal("unreadable", "file not found" if not p.exists() else
+                        "not a regular file; expected a CSV recording")
     files = [(p, p.stem)]
     if siblings:
         files += [(s, s.name[len(p.stem) + 1:-len(s.suffix)]) for s in csv_siblings(p)]
@@ -149,7 +178,8 @@ def read_csv(path: str, *, keep: Callable[[str], bool], log: IssueLog,
     out = []
     for (f, dev), t_first in zip(files, firsts):
         g = _read_one(f, dev, keep=keep, log=log, chunk_samples=chunk_samples,
-                      window=(origin + window_s[0], origin + window_s[1]))
+                      window=(origin + window_s[0], origin + window_s[1]),
+                      origin_ns=_to_ns(origin))
         if g is not None:
             g.origin_ns = _to_ns(origin)
             out.append(g)
@@ -226,22 +256,27 @@ def _offset_before(path: Path, header_lines: int, sep: str, ti: int, decimal: st
 
 def first_time(path: Path, log: IssueLog) -> float:
     """The first data row's time, float s (ISO-8601: s since the Unix epoch)."""
+    log = _file_log(log, path)
     _, _, names, first, decimal = _sniff(path, log)
     ti = _time_column(names, log)
     if not first or ti >= len(first):
-        raise log.fatal("unreadable", f"{path.name}: the CSV file has a header but no data rows")
+        raise log.fatal("unreadable", "the CSV file has a header but no data rows")
     return _parse_time(first[ti], decimal, log)
 
 
 def last_time(path: Path, log: IssueLog) -> float:
     """The last data row's time, float s (read from the file's end)."""
+    log = _file_log(log, path)
     n_comment, sep, names, first, decimal = _sniff(path, log)
     ti = _time_column(names, log)
-    with open(path, "rb") as fh:
-        size = fh.seek(0, 2)
-        back = min(size, 1 << 16)
-        fh.seek(size - back)
-        tail = fh.read().decode("utf-8", errors="replace").splitlines()
+    try:
+        with open(path, "rb") as fh:
+            size = fh.seek(0, 2)
+            back = min(size, 1 << 16)
+            fh.seek(size - back)
+            tail = fh.read().decode("utf-8", errors="replace").splitlines()
+    except OSError as exc:
+        raise log.fatal("unreadable", f"cannot read the file ({exc.strerror or exc})") from None
     for line in reversed(tail):
         cells = line.split(sep)
         if len(cells) > ti and cells[ti].strip():
@@ -263,16 +298,85 @@ def _count_lines(path: Path) -> int:
     return count + (last != b"\n")
 
 
+_ARROW_CELL = re.compile(r"column #(\d+)\b.*invalid value '(.*)'\s*$", re.S)
+_NULLS = ("", "nan", "NaN", "NAN", "null", "NULL", "NA", "N/A", "-nan")
+
+
+def _parse_error(path: Path, log: _FileLog, exc: BaseException, *, n_comment: int, sep: str,
+                 names: list[str], ti: int, first: list[str], decimal: str) -> RecordingError:
+    """The error of a CSV file pyarrow cannot parse: the line, channel, time and value.
+
+    pyarrow names the column's position and the value only (its row count restarts with
+    each block); this finds the first line holding that value in that column (or, for a
+    line with the wrong number of fields, the first such line) by a scan of the file,
+    only on this error path.
+    """
+    m = _ARROW_CELL.search(str(exc))
+    col, value = (int(m.group(1)), m.group(2)) if m else (None, None)
+    ncols = len(names)
+
+    def time_of(cells: list[str]) -> float | None:
+        try:
+            t = _parse_time(cells[ti], decimal, log) - _parse_time(first[ti], decimal, log)
+        except (RecordingError, IndexError):
+            return None
+        return t if math.isfinite(t) else None
+
+    found = None
+    prev: str | None = None  # the line before
+    try:
+        with open(path, "rb") as fh:
+            for lineno, raw in enumerate(fh, start=1):
+                if lineno <= n_comment + 1:
+                    continue
+                line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
+                if not line.strip():
+                    continue
+                if (value is not None and value not in line) or (
+                        value is None and line.count(sep) == ncols - 1 and '"' not in line):
+                    prev = line
+                    continue
+                cells = next(csv.reader([line], delimiter=sep), [])
+                if len(cells) != ncols:
+                    found = (lineno, cells, None)
+                    break
+                if value is not None and col is not None and col < ncols and \
+                        cells[col] == value:
+                    found = (lineno, cells, col)
+                    break
+                prev = line
+    except OSError:
+        found = None
+    if found is None:
+        return log.fatal("unreadable", f"cannot parse the CSV file: {exc}")
+    lineno, cells, col = found
+    if col is None:
+        t = time_of(cells)
+        return log.fatal("unreadable", f"line {lineno} has {len(cells)} fields but the header "
+                         f"has {ncols}; expected one value per column", time=t)
+    if col == ti:
+        t = time_of(next(csv.reader([prev], delimiter=sep), [])) if prev else None
+        after = f" (after t={t:.6f} s)" if t is not None else ""
+        return log.fatal("unreadable", f"line {lineno}: the time {value!r} is neither float "
+                         f"seconds nor an ISO-8601 timestamp{after}", time=t)
+    return log.fatal("unreadable", f"line {lineno}: the value {value!r} is not a number; "
+                     "expected a number, or an empty cell, nan or null for a missing sample",
+                     channel=split_header(names[col])[0], time=time_of(cells))
+
+
 def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: IssueLog,
-              chunk_samples: int, window: tuple[float, float] | None = None
-              ) -> DeviceGrid | None:
+              chunk_samples: int, window: tuple[float, float] | None = None,
+              origin_ns: int | None = None) -> DeviceGrid | None:
+    """One CSV file as a device grid; ``origin_ns`` (the recording's start, as the file's
+    times) dates the findings of a windowed read."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
+    log = _file_log(log, path)
     n_comment, sep, raw_names, first, decimal = _sniff(path, log)
     ti = _time_column(raw_names, log)
     if not first:
-        raise log.fatal("unreadable", f"{path.name}: the CSV file has a header but no data rows")
+        raise log.fatal("unreadable", "the CSV file has a header but no data rows")
     t_first = first[ti].strip() if ti < len(first) else ""
     try:
         float(t_first.replace(",", ".") if decimal == "," else t_first)
@@ -285,7 +389,7 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     kept = [i for i in range(len(parsed)) if i != ti and keep(parsed[i][0])]
     dup = {parsed[i][0] for i in kept if [parsed[j][0] for j in kept].count(parsed[i][0]) > 1}
     if dup:
-        raise log.fatal("unreadable", f"{path.name}: channel(s) {sorted(dup)} appear in more "
+        raise log.fatal("unreadable", f"channel(s) {sorted(dup)} appear in more "
                         "than one column")
     types = {col_names[ti]: pa.string() if iso else pa.float64()}
     types.update({col_names[i]: pa.float32() for i in kept})
@@ -297,8 +401,7 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     parse_opts = pacsv.ParseOptions(delimiter=sep)
     conv = pacsv.ConvertOptions(column_types=types, include_columns=[col_names[ti]]
                                 + [col_names[i] for i in kept], decimal_point=decimal,
-                                null_values=["", "nan", "NaN", "NAN", "null", "NULL", "NA",
-                                             "N/A", "-nan"], strings_can_be_null=True)
+                                null_values=list(_NULLS), strings_can_be_null=True)
     offset = 0
     if window is None:
         cap = max(1, _count_lines(path) - n_comment - 1)  # exact: no growing, no trimming copy
@@ -356,15 +459,15 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
                 d_buf[r, n:n + m] = batch.column(col_names[i]).to_numpy(zero_copy_only=False)
             n += m
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError, OSError) as exc:
-        raise log.fatal("unreadable", f"{path.name}: cannot parse the CSV file after row "
-                        f"{n + 1}: {exc}") from None
+        raise _parse_error(path, log, exc, n_comment=n_comment, sep=sep, names=raw_names,
+                           ti=ti, first=first, decimal=decimal) from None
     finally:
         if offset:
             source.close()
     if n == 0:
         if window is not None:
             return None  # this file holds nothing inside the window
-        raise log.fatal("unreadable", f"{path.name}: the CSV file has no data rows")
+        raise log.fatal("unreadable", "the CSV file has no data rows")
     t_buf = t_buf[:n]
     # a view keeps the spare capacity alive; copy only when that is more than 10 %
     d_buf = d_buf[:, :n] if d_buf.shape[1] <= 1.1 * n else np.ascontiguousarray(d_buf[:, :n])
@@ -375,7 +478,7 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
         t_rel = t_buf
         bad = ~np.isfinite(t_rel)
         if bad.any():
-            log.add("non_monotonic", f"{path.name}: {int(bad.sum())} rows have no valid time; "
+            log.add("non_monotonic", f"{int(bad.sum())} rows have no valid time; "
                     "dropped", device=device, channel=",".join(parsed[i][0] for i in kept))
             t_rel = t_rel[~bad]
             d_buf = d_buf[:, ~bad]
@@ -385,7 +488,8 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
         t_rel -= start
     return _to_grid(path, device, t_rel, d_buf, start_ns,
                     tuple(parsed[i][0] for i in kept),
-                    tuple(parsed[i][1] or "" for i in kept), all_channels, log)
+                    tuple(parsed[i][1] or "" for i in kept), all_channels, log,
+                    t_offset_s=0.0 if origin_ns is None else (start_ns - origin_ns) / 1e9)
 
 
 _CHUNK = 1 << 20
@@ -399,27 +503,28 @@ def _diffs(t: np.ndarray):
 
 def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns: int,
              channels: tuple[str, ...], units: tuple[str, ...], all_channels: tuple[str, ...],
-             log: IssueLog) -> DeviceGrid:
-    """Put rows with times ``t`` (s from the first) on a uniform grid; report what is off."""
+             log: _FileLog, *, t_offset_s: float = 0.0) -> DeviceGrid:
+    """Put rows with times ``t`` (s from the first) on a uniform grid; report what is off.
+
+    ``t_offset_s``: time of the first row from the recording's start (a windowed read).
+    Time that steps back or repeats is an error (telemetry.md: the order of samples is
+    not guessed).
+    """
     names = ",".join(channels)
     n = t.size
     if n < 2:
-        raise log.fatal("unreadable", f"{path.name}: a single row; cannot tell the sample rate",
+        raise log.fatal("unreadable", "a single row; cannot tell the sample rate",
                         channel=names)
-    back = np.concatenate([s + np.flatnonzero(d <= 0) for s, d in _diffs(t)])
-    if back.size:
-        shown = ", ".join(f"t={t[i + 1]:.6f} s after t={t[i]:.6f} s" for i in back[:3])
-        log.add("non_monotonic", f"{path.name}: time does not increase at {back.size} rows "
-                f"({shown}); rows sorted by time, repeated times dropped", channel=names,
-                t_start=float(t[back[0] + 1]), device=device)
-        order = np.argsort(t, kind="stable")
-        t = t[order]
-        data = data[:, order]
-        keep = np.concatenate(([True], np.diff(t) > 0))
-        if not keep.all():
-            t = t[keep]
-            data = data[:, keep]
-        n = t.size
+    back = next((s + np.flatnonzero(d <= 0) for s, d in _diffs(t) if (d <= 0).any()), None)
+    if back is not None:
+        i = int(back[0])
+        n_back = sum(int((d <= 0).sum()) for _, d in _diffs(t))
+        a, b = float(t[i]) + t_offset_s, float(t[i + 1]) + t_offset_s
+        what = f"repeats: t={b:.6f} s twice" if t[i + 1] == t[i] else \
+            f"steps back from t={a:.6f} s to t={b:.6f} s"
+        more = f" ({n_back} rows in all are not after the row before)" if n_back > 1 else ""
+        raise log.fatal("non_monotonic", f"time {what}{more}; expected strictly increasing "
+                        "times: the order of samples is not guessed", time=b)
     dt = float(np.median(np.diff(t[:2_000_001])))  # the first 2e6 steps tell the rate
     span = float(t[-1] - t[0])
     rate = 1.0 / dt
@@ -428,7 +533,7 @@ def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns:
     if abs(rate - round(rate)) <= 1e-5 * rate:
         rate = float(round(rate))
     if not math.isfinite(rate) or rate <= 0:
-        raise log.fatal("rate_mismatch", f"{path.name}: cannot tell the sample rate",
+        raise log.fatal("rate_mismatch", "cannot tell the sample rate",
                         channel=names)
     n_odd = 0
     first_odd: tuple[int, float] | None = None
@@ -449,15 +554,15 @@ def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns:
     if n_odd > 0.01 * n or n_big > max(3, 0.01 * n):
         if first_odd is None:
             first_odd = (int(big_at[0][0]) + 1, float(t[big_at[0][0] + 1] - t[big_at[0][0]]))
-        raise log.fatal("rate_mismatch", f"{path.name}: the time steps are not one rate: the "
-                        f"median step is {dt:.6g} s ({rate:.6g} Hz) but {n_odd + n_big} of {n - 1} "
-                        f"steps differ (e.g. {first_odd[1]:.6g} s); expected one rate per file",
-                        channel=names, time=float(t[first_odd[0]]))
+        raise log.fatal("rate_mismatch", f"the time steps are not one rate: the median step "
+                        f"is {dt:.6g} s ({rate:.6g} Hz) but {n_odd + n_big} of {n - 1} steps "
+                        f"differ (e.g. {first_odd[1]:.6g} s); expected one rate per file",
+                        channel=names, time=float(t[first_odd[0]]) + t_offset_s)
     if n_odd:
-        log.add("non_monotonic", f"{path.name}: {n_odd} time steps are off the {rate:g} Hz grid "
-                f"by more than a quarter sample (first at t={t[first_odd[0]]:.6f} s); rows put "
-                "on the nearest grid point", channel=names, t_start=float(t[first_odd[0]]),
-                device=device)
+        t_odd = float(t[first_odd[0]]) + t_offset_s
+        log.add("non_monotonic", f"{n_odd} time steps are off the {rate:g} Hz grid by more "
+                f"than a quarter sample (first at t={t_odd:.6f} s); rows put on the nearest "
+                "grid point", channel=names, t_start=t_odd, device=device)
     gaps: list[tuple[int, int]] = []
     time_buffer: np.ndarray | None = t if t.dtype == np.float64 else None
     if n_big:

@@ -204,13 +204,16 @@ class _Placer:
         pos = np.asarray(self.pos, dtype=np.int64)
         n = np.asarray(self.n, dtype=np.int64)
         t0 = np.asarray(self.t0, dtype=np.int64)
+        order = np.lexsort((pos, t0))  # blocks may arrive in any order: time order
+        pos, n, t0 = pos[order], n[order], t0[order]
+        rate = self.rate
+        kept = tuple(self.channels[i] for i in self.rows.tolist())
+        names = ",".join(kept)
+        self._check_order(log, t0, n, origin_ns, names)
         order = np.argsort(pos, kind="stable")
         pos, n, t0 = pos[order], n[order], t0[order]
         ends = np.maximum.accumulate(pos + n)
         first, last = int(pos[0]), int(ends[-1])
-        rate = self.rate
-        kept = tuple(self.channels[i] for i in self.rows.tolist())
-        names = ",".join(kept)
         if len(pos) > 1:
             dt_samples = np.diff(t0) * rate / 1e9
             ok = n[:-1] > 0
@@ -229,12 +232,14 @@ class _Placer:
         nxt = pos[1:]
         for j in np.flatnonzero(nxt > prev_end).tolist():
             gaps.append((int(prev_end[j]) - first, int(nxt[j]) - first))
-        for j in np.flatnonzero(nxt < prev_end).tolist():
+        for j in np.flatnonzero(nxt < prev_end).tolist():  # less than a sample after
             t = (self.ref - origin_ns) / 1e9 + int(nxt[j]) / rate
+            shared = int(prev_end[j] - nxt[j])
             log.add("non_monotonic",
-                    f"device {self.topic!r}: the block starting at t={t:.4f} s overlaps the one "
-                    f"before by {int(prev_end[j] - nxt[j])} samples: time goes backwards; the "
-                    "block read last wins", channel=names, t_start=t, device=self.topic)
+                    f"device {self.topic!r}: the block starting at t={t:.4f} s starts less than "
+                    f"a sample after the last sample of the block before, so {shared} of its "
+                    "samples share grid points with it; the block read last wins",
+                    channel=names, t_start=t, device=self.topic)
         a, b = first - self.lo, last - self.lo
         for g0, g1 in gaps:  # dropouts: NaN, never interpolated
             self.buf[:, a + g0:a + g1] = np.nan
@@ -247,6 +252,32 @@ class _Placer:
                           units=tuple(self.units[i] for i in self.rows.tolist()), data=data,
                           gaps=gaps, all_channels=self.channels,
                           corrupt_ns=list(corrupt_ns))
+
+
+    def _check_order(self, log: IssueLog, t0: np.ndarray, n: np.ndarray, origin_ns: int,
+                     names: str) -> None:
+        """Refuse time that steps back or repeats: a block (in time order) whose first
+        sample is not after the last sample of the blocks before it (telemetry.md)."""
+        has = n > 0
+        t0, n = t0[has], n[has]
+        if t0.size < 2:
+            return
+        last = t0 + np.round((n - 1) * (1e9 / self.rate)).astype(np.int64)
+        reach = np.maximum.accumulate(last)[:-1]  # the latest sample before each block
+        bad = np.flatnonzero(t0[1:] <= reach)
+        if not bad.size:
+            return
+        j = int(bad[0])
+        t_new = (int(t0[j + 1]) - origin_ns) / 1e9
+        t_old = (int(reach[j]) - origin_ns) / 1e9
+        what = (f"repeats the start t={t_new:.6f} s of another block" if t0[j + 1] == t0[j]
+                else f"starts at t={t_new:.6f} s, not after the last sample (t={t_old:.6f} s) "
+                     "of the block before it")
+        more = f" ({bad.size} blocks in all)" if bad.size > 1 else ""
+        raise log.fatal("non_monotonic", f"device {self.topic!r}: a sample block {what}: time "
+                        f"steps back or repeats{more}; expected the blocks of a device not to "
+                        "overlap (they may arrive in any order, but the order of samples is "
+                        "not guessed)", channel=names, time=t_new)
 
 
 class _Assembler:
@@ -388,7 +419,7 @@ def read_mcap(path: str, *, keep: Callable[[str], bool], log: IssueLog,
     try:
         fh = open(path, "rb")
     except OSError as exc:
-        raise log.fatal("unreadable", f"cannot open the file: {exc}") from None
+        raise log.fatal("unreadable", f"cannot open the file ({exc.strerror or exc})") from None
     with fh:
         try:
             reader = make_reader(fh, validate_crcs=True)
@@ -527,14 +558,23 @@ def _first_log_time(fh, failures: tuple[type[BaseException], ...]) -> int:
     return 0
 
 
-def mcap_span_ns(path: str) -> tuple[int, int] | None:
-    """``(first, last)`` message log times of an MCAP file (its summary, or a stream)."""
+def mcap_span_ns(path: str, log: IssueLog | None = None) -> tuple[int, int] | None:
+    """``(first, last)`` message log times of an MCAP file (its summary, or a stream).
+
+    None when it holds no readable message.  Raises the RecordingError of ``log``
+    (``unreadable``) when the file cannot be opened.
+    """
     from mcap.reader import make_reader
     from mcap.records import Message
     from mcap.stream_reader import StreamReader
 
     failures = _failures()
-    with open(path, "rb") as fh:
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise (log or IssueLog(str(path))).fatal(
+            "unreadable", f"cannot open the file ({exc.strerror or exc})") from None
+    with fh:
         try:
             summary = make_reader(fh).get_summary()
         except failures:

@@ -30,9 +30,16 @@ kind                          handling
                               extreme (saturation), or at the 16-bit full scale of a
                               ``raw`` channel
 ``flat``                      warning: a channel that never changes (dead sensor)
-``non_monotonic``             warning: time going backwards or repeating (CSV rows are
-                              sorted, repeats dropped; overlapping MCAP blocks: the later
-                              block in the file wins)
+``non_monotonic``             fatal: time that steps back or repeats (a CSV row whose time
+                              is not after the row before; an MCAP block of a device whose
+                              first sample is not after the last sample of the block
+                              before it in time; blocks may arrive in any order): the
+                              order of samples is not guessed (telemetry.md).  Warning:
+                              CSV rows without a valid time (dropped), CSV time steps off
+                              the rate's grid by more than a quarter sample, an MCAP block
+                              starting less than a sample after the one before (its first
+                              sample shares the grid point of that block's last; the block
+                              read last wins)
 ``timestamp_mismatch``        warning: an MCAP ``log_time`` disagreeing with the block's
                               ``t0_ns`` by more than a sample (``t0_ns`` is used)
 ``unknown_channel``           warning: a channel the mill file does not map; ignored
@@ -99,9 +106,13 @@ class IssueLog:
                                         device=device))
 
     def fatal(self, kind: str, message: str, *, channel: str | None = None,
-              time: float | None = None) -> RecordingError:
-        """Return the RecordingError of a fatal finding (the caller raises it)."""
-        return RecordingError(f"{kind.replace('_', ' ')}: {message}", path=self.path,
+              time: float | None = None, path: str | None = None) -> RecordingError:
+        """Return the RecordingError of a fatal finding (the caller raises it).
+
+        ``path`` names another file of the recording (a CSV sibling) instead of
+        :attr:`path`.
+        """
+        return RecordingError(f"{kind.replace('_', ' ')}: {message}", path=path or self.path,
                               channel=channel, time=time)
 
     def finish(self, *, warn: bool) -> tuple[QualityIssue, ...]:

@@ -36,8 +36,8 @@ from .mcap_reader import MAX_BLOCK_NS, mcap_span_ns, read_mcap
 from .quality import IssueLog, gap_issues, gap_mask_of, scan_channel
 from .recording import Recording
 
-__all__ = ["read_recording", "iter_recording", "recording_span", "reduced_torques",
-           "align_devices", "DEFAULT_CHUNK_SAMPLES"]
+__all__ = ["read_recording", "iter_recording", "recording_span", "check_recording_path",
+           "reduced_torques", "align_devices", "DEFAULT_CHUNK_SAMPLES"]
 
 #: Rows per batch when parsing CSV.
 DEFAULT_CHUNK_SAMPLES = 1 << 15
@@ -88,18 +88,16 @@ def read_recording(path: str | Path, mill: Mill | None = None, *, align: bool = 
     Raises
     ------
     RecordingError
-        Unknown format, unreadable file, a unit that disagrees with the mill file, a
+        A directory, an unknown format, a missing, unreadable, empty or corrupt file, time
+        that steps back or repeats, a unit that disagrees with the mill file, a
         rate that disagrees with the timestamps, a requested channel that is absent,
         no mapped channel at all, or no sample inside the requested window.
     ident.errors.MillFileError
         The attached ``mill.toml`` is invalid (only when ``mill`` is None).
     """
-    p = Path(path)
+    p = check_recording_path(path)
     log = IssueLog(str(p))
     ext = p.suffix.lower()
-    if ext not in (".mcap", ".csv"):
-        raise log.fatal("unreadable", f"unknown recording format {p.suffix!r}; expected "
-                        "'.mcap' or '.csv'")
     window = None
     if t_start is not None or t_end is not None:
         lo = 0.0 if t_start is None else float(t_start)
@@ -143,10 +141,10 @@ def recording_span(path: str | Path) -> float:
     the last block's own samples extend beyond.  CSV: the first and last rows of the
     file and its siblings.  Cheap: no sample is decoded.
     """
-    p = Path(path)
+    p = check_recording_path(path)
     log = IssueLog(str(p))
     if p.suffix.lower() == ".mcap":
-        span = mcap_span_ns(str(p))
+        span = mcap_span_ns(str(p), log)
         if span is None:
             raise log.fatal("unreadable", "it holds no message")
         return (span[1] - span[0]) / 1e9
@@ -155,6 +153,36 @@ def recording_span(path: str | Path) -> float:
     files = [p] + csv_siblings(p)
     firsts = [first_time(f, log) for f in files]
     return max(last_time(f, log) for f in files) - min(firsts)
+
+
+def check_recording_path(path: str | Path) -> Path:
+    """The path of a recording, once it names a readable, non-empty ``.mcap`` or ``.csv`` file.
+
+    Raises
+    ------
+    RecordingError
+        A directory, an unknown extension, a missing, unreadable or empty file, each
+        naming the path.
+    """
+    p = Path(path)
+    log = IssueLog(str(p))
+    if p.is_dir():
+        raise log.fatal("unreadable", "is a directory; expected a recording file (.mcap or "
+                        ".csv; 'ident campaign DIR' processes a folder)")
+    if p.suffix.lower() not in (".mcap", ".csv"):
+        raise log.fatal("unreadable", f"unknown recording format {p.suffix!r}; expected "
+                        "'.mcap' or '.csv'")
+    if not p.exists():
+        raise log.fatal("unreadable", "file not found")
+    try:
+        with open(p, "rb") as fh:
+            empty = not fh.read(1)
+    except OSError as exc:
+        raise log.fatal("unreadable", f"cannot read the file ({exc.strerror or exc})") from None
+    if empty:
+        raise log.fatal("unreadable", "the file is empty (0 bytes); expected an MCAP or CSV "
+                        "recording")
+    return p
 
 
 def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: float = 600.0,
