@@ -182,6 +182,11 @@ class Collocation:
         iterations, to a lower cost.
     stage_max_iter : int or None
         IPOPT iterations of every stage but the last (None: ``max_iter``).
+    max_cpu_s : float
+        CPU seconds of one IPOPT call (``max_cpu_time``): a stage that takes
+        longer stops with ``Maximum_CpuTime_Exceeded``, is not converged, and
+        the fit says so.  A 4-window stage takes 1-60 s on the 2-core box; one
+        solve once sat 50 minutes in MUMPS on another machine.
     """
 
     degree: int = 3
@@ -197,6 +202,7 @@ class Collocation:
     compile: bool = True
     ipopt: Mapping[str, Any] = field(default_factory=dict)
     width_warm: str = "primal"
+    max_cpu_s: float = 240.0
     _cache: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
 
     name = "collocation"
@@ -211,6 +217,8 @@ class Collocation:
                            f"Got {self.width_warm!r}.")
         if self.stage_max_iter is not None and self.stage_max_iter < 1:
             raise FitError(f"Collocation stage_max_iter must be >= 1. Got {self.stage_max_iter}.")
+        if not self.max_cpu_s > 0:
+            raise FitError(f"Collocation max_cpu_s must be positive. Got {self.max_cpu_s}.")
         self._block_shape()
 
     def _block_shape(self) -> tuple[int, int]:
@@ -662,6 +670,7 @@ def _build(strategy: Collocation, problem: Problem) -> CollocationNLP:
         "ipopt.acceptable_tol": 1e-6,
         "ipopt.acceptable_iter": 10,
         "ipopt.max_iter": strategy.max_iter,
+        "ipopt.max_cpu_time": float(strategy.max_cpu_s),
         "ipopt.nlp_scaling_method": "none",
         "grad_f": grad_fn,
         "jac_g": jac_fn,

@@ -51,8 +51,9 @@ from .model import FitModel, build_fit_model
 from .problem import Estimate, Problem, SolveInfo, initial_estimate, make_problem
 from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
-from .uncertainty import Z95, Covariance, collocation_sensitivity, covariance, noise_floor, \
-    shooting_sensitivity
+from .uncertainty import Z95, Covariance, channel_information, collocation_sensitivity, \
+    covariance, noise_floor, shooting_sensitivity, window_influence
+from .verdict import band_check, verdicts, window_residuals
 from .windows import FitWindow
 
 __all__ = ["fit_gaps", "assess", "Assessment"]
@@ -76,7 +77,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
              gap_max: float | None = None, open_frac: float = 0.5,
              fixed: dict[str, float] | None = None, effects: Sequence = (),
              uncertainty: bool = True, direct: bool | str = "auto",
-             progress: bool = False) -> FitResult:
+             time_budget_s: float | None = None, progress: bool = False) -> FitResult:
     """Identify every element's gap from measured transient windows.
 
     Parameters
@@ -127,6 +128,10 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         (default) runs it only when the best continued fit stays above the
         noise floor (``NOISE_RATIO_MAX`` times the noise variance); ``True``
         always, ``False`` never.
+    time_budget_s : float, optional
+        Wall seconds after which no further start or path is begun (the one
+        under way finishes; each IPOPT call is bounded by the strategy's
+        ``max_cpu_s``).  The fit reports what it reached and a warning.
     progress : bool
         Progress bar on stderr.
 
@@ -208,16 +213,30 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     if not auto and bool(direct) and model.family is Family.G1:
         paths.append(held_path)
     bases = [_start_from_baseline(problem, lin_est, sv, open_frac) for sv in start_vecs]
+    warns: list[str] = []
+
+    def over_budget() -> bool:
+        if time_budget_s is None or time.perf_counter() - t_all <= time_budget_s or not runs:
+            return False
+        if not any("time budget" in w for w in warns):
+            warns.append(f"the fit's time budget of {time_budget_s:g} s ran out after "
+                         f"{len(runs)} solve(s); the remaining starts or paths were not tried")
+        return True
+
     for k, (sv, base) in enumerate(zip(start_vecs, bases)):
         for path, settle, widths, horizons in paths:
+            if over_budget():
+                break
             est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
             build_s += info.build_seconds
             runs.append((k, sv, est, info, path))
         if bar:
             bar.update(1)
-    if auto and model.family is Family.G1 and \
+    if auto and model.family is Family.G1 and not over_budget() and \
             _above_noise_floor(method, problem, runs):
         for k, (sv, base) in enumerate(zip(start_vecs, bases)):
+            if over_budget():
+                break
             path, settle, widths, horizons = held_path
             est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
             build_s += info.build_seconds
@@ -226,7 +245,6 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
     k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
     converged = bool(ok)
-    warns: list[str] = []
     if not converged:
         msg = (f"no start of the {method.name} fit converged (best: {info.status}); the "
                "reported numbers are not an identification")
@@ -239,7 +257,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     if bar:
         bar.update(1)
         bar.close()
-    a = assess(problem, judge, est, uncertainty=uncertainty, converged=converged)
+    a = assess(problem, judge, est, uncertainty=uncertainty, converged=converged,
+               status=info.status)
     r_fit, cov, elements, ratio = a.residuals, a.covariance, a.elements, a.noise_ratio
     warns += list(a.warnings)
     nrmse_ch = _nrmse_channels(r_fit, model.ny)
@@ -266,7 +285,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         nrmse_channels={model.measured[c]: v for c, v in nrmse_ch.items()},
         nrmse_linear_channels={model.measured[c]: v for c, v in nrmse_lin_ch.items()},
         solver=solver, windows=_window_report(problem, est, elements), noise_ratio=ratio,
-        noise=noise, warnings=tuple(warns))
+        noise=noise, warnings=tuple(warns), band=a.band)
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,8 +299,10 @@ class Assessment:
     covariance : Covariance or None
     elements : dict of str to ElementFit
     noise_ratio : float
-        Mean squared residual over the sensor noise's variance from the data.
+        Mean squared residual over the white noise's variance (informational).
     warnings : tuple of str
+    band : BandCheck
+        The residual's transient-band ratio per channel (:mod:`ident.fit.verdict`).
     """
 
     residuals: np.ndarray
@@ -289,10 +310,12 @@ class Assessment:
     elements: dict
     noise_ratio: float
     warnings: tuple[str, ...]
+    band: Any = None
 
 
 def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate, *,
-           uncertainty: bool = True, converged: bool = True) -> Assessment:
+           uncertainty: bool = True, converged: bool = True,
+           status: str = "Solve_Succeeded") -> Assessment:
     """Intervals, identifiability flags and the noise-floor check at an estimate.
 
     The last step of :func:`fit_gaps`, public so that an estimate reached
@@ -309,12 +332,14 @@ def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate
     uncertainty : bool
         Compute the covariance (else intervals are NaN, nothing identifiable).
     converged : bool
-        Whether the solve converged (the noise-floor check applies only then).
+        Whether the solve converged (nothing is identified otherwise).
+    status : str
+        The solver's status (for the reasons).
     """
     model = problem.model
     warns: list[str] = []
     r_fit = _residuals(method, problem, est)
-    cov = None
+    cov = sens = None
     if uncertainty:
         try:
             sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
@@ -325,14 +350,71 @@ def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate
     elements, ewarn = _element_report(model, problem, est, cov, _final_width(method))
     warns += ewarn
     ratio = _noise_ratio(r_fit, problem)
-    if converged and ratio > NOISE_RATIO_MAX:
-        warns.append(f"the residuals stay {ratio:.2f} times the sensor noise's variance "
-                     f"(at most {NOISE_RATIO_MAX} expected): a local minimum or an effect the "
-                     "model lacks; no gap is reported as identified")
-        elements = {k: replace(v, identifiable=False, gap_open_identifiable=False)
-                    for k, v in elements.items()}
+    check = band_check(problem, window_residuals(r_fit, model.ny,
+                                                 _window_lengths(method, problem, r_fit)))
+    information = moves = None
+    if sens is not None and cov is not None:
+        information, moves = _gap_diagnostics(model, sens, cov, est)
+    elements = verdicts(elements, model=model, problem=problem, check=check,
+                        converged=converged, status=status, information=information,
+                        moves=moves)
+    if converged and not check.all_pass:
+        worst = max(check.ratio, key=lambda c: check.ratio[c]
+                    if math.isfinite(check.ratio[c]) else math.inf)
+        warns.append(f"the residual of {worst} in the transient band "
+                     f"({check.bands.transient[0]:.0f}-{check.bands.transient[1]:.0f} Hz) is "
+                     f"{check.ratio[worst]:.2f} times the sensor noise there: a local minimum "
+                     "or an effect the model lacks; the gaps it sees are not identified")
     return Assessment(residuals=r_fit, covariance=cov, elements=elements, noise_ratio=ratio,
-                      warnings=tuple(warns))
+                      warnings=tuple(warns), band=check)
+
+
+def _gap_diagnostics(model: FitModel, sens: Any, cov: Covariance, est: Estimate
+                     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Per element: its gap's information share per channel, and its move per left-out window.
+
+    The moves come as an array of shape (2, n_windows): the change of the gap,
+    rad, and that change over its standard deviation.
+    """
+    infl, zs = window_influence(sens, cov)
+    information: dict[str, np.ndarray] = {}
+    moves: dict[str, np.ndarray] = {}
+    zmoves: dict[str, np.ndarray] = {}
+    for e in model.mill.elements:
+        idx = model.element_shared(e.id)
+        gap0, _ = model.equivalent_gap(e.id, est.shared)
+        share = np.zeros(model.ny)
+        d = np.zeros(infl.shape[0])
+        z = np.zeros(infl.shape[0])
+        for i in idx:
+            share += channel_information(sens, cov, ("shared", i))
+            try:
+                col = sens.columns.index(("shared", i))
+            except ValueError:
+                continue
+            z = np.where(np.abs(zs[:, col]) > np.abs(z), zs[:, col], z)
+            if model.family is Family.G1:
+                d = d + infl[:, col]
+            else:  # the equivalent gap moved by the left-out step in this parameter
+                for k in range(infl.shape[0]):
+                    sp = est.shared.copy()
+                    sp[i] += infl[k, col] if np.isfinite(infl[k, col]) else 0.0
+                    d[k] += model.equivalent_gap(e.id, sp)[0] - gap0
+        information[e.id] = share
+        # a gap on its lower bound stays there: only moves up count
+        moves[e.id] = np.maximum(d, -gap0) if model.family is Family.G1 else d
+        zmoves[e.id] = np.where(moves[e.id] == d, z, z * moves[e.id] / np.where(d != 0, d, 1))
+    return information, {k: np.vstack([moves[k], zmoves[k]]) for k in moves}
+
+
+def _window_lengths(method: Any, problem: Problem, r: np.ndarray) -> list[int]:
+    """Samples per window in a residual vector of ``method``."""
+    ny = problem.model.ny
+    full = list(problem.lengths)
+    if r.size == sum(full) * ny:
+        return full
+    nlp = method.nlp(problem)
+    return [nb * nlp.samples_per_block for nb in nlp.n_blocks]
 
 
 # ---- helpers ------------------------------------------------------------------------------
@@ -386,12 +468,16 @@ def _residuals(method: Any, problem: Problem, est: Estimate) -> np.ndarray:
 
 
 def _above_noise_floor(method: Any, problem: Problem, runs: list) -> bool:
-    """Whether the best converged run's residuals stay above the noise floor (or none converged)."""
+    """Whether the best converged run's residuals stay above the noise in the transient band
+    on some channel (or no run converged)."""
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     if not ok:
         return True
     best = min(ok, key=lambda r: r[3].cost)
-    return _noise_ratio(_residuals(method, problem, best[2]), problem) > NOISE_RATIO_MAX
+    r = _residuals(method, problem, best[2])
+    check = band_check(problem, window_residuals(r, problem.model.ny,
+                                                 _window_lengths(method, problem, r)))
+    return not check.all_pass
 
 
 def _noise_ratio(r: np.ndarray, problem: Problem) -> float:
@@ -557,6 +643,7 @@ def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covar
         traversed = bool(np.isfinite(depth) and depth > 0.5 * width and half < depth)
         identifiable = bool(cov is not None and np.isfinite(se) and traversed
                             and half <= max(0.25 * abs(gap), 5e-4))
+        why = _why_not_identifiable(cov, fixed, se, traversed, half, gap)
         if cov is not None and not traversed and not fixed:
             ci = (float(np.clip(gap - half if np.isfinite(half) else 0.0, 0.0, gap)),
                   float(model.gap_max))
@@ -577,8 +664,27 @@ def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covar
             gap=float(gap), gap_ci95=ci, gap_se=float(se), gap_open=float(go),
             gap_open_ci95=go_ci, gap_open_windows=tuple(opens),
             gap_mm=e.gap_mm(float(gap)) if np.isfinite(gap) else None, params=params,
-            params_se=params_se, identifiable=identifiable, gap_open_identifiable=open_ident)
+            params_se=params_se, identifiable=identifiable, gap_open_identifiable=open_ident,
+            reason=why)
     return out, warns
+
+
+def _why_not_identifiable(cov: Covariance | None, fixed: bool, se: float, traversed: bool,
+                          half: float, gap: float) -> str:
+    """One line on why a gap is not identifiable from the windows ("" when it is)."""
+    if fixed:
+        return "held at a given value (not fitted)"
+    if cov is None:
+        return "no uncertainty was computed"
+    if not np.isfinite(se):
+        return "no torque channel sees it (no sensitivity of the measured torques to it)"
+    if not traversed:
+        return ("no window drives it across its gap (drive and back flank): the data bound "
+                "it from below only")
+    if half > max(0.25 * abs(gap), 5e-4):
+        return (f"its 95 % interval (+-{1e3 * half:.2f} mrad) is wider than max(25 %, "
+                "0.5 mrad)")
+    return ""
 
 
 def _traversal_depth(model: FitModel, est: Estimate, j: int, gap: float,

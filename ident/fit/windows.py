@@ -19,6 +19,7 @@ import pandas as pd
 
 from ..description import Mill, Quantity
 from ..errors import DataQualityWarning, FitError
+from .noise import NoiseSpectrum, noise_spectrum
 
 __all__ = ["FitWindow", "windows_from_recording", "reduced_torque_frame"]
 
@@ -45,6 +46,11 @@ class FitWindow:
         Change of the load, N*m reduced (negative for a release).
     label : str
         Where the window came from (for reports).
+    noise : NoiseSpectrum or None
+        The sensor noise's density per element, measured on the quiet
+        stretches of the recording the window was cut from (the same object
+        for every window of one recording; :mod:`ident.fit.noise`).  None:
+        the fit estimates it from the windows themselves.
     """
 
     t: np.ndarray
@@ -56,6 +62,7 @@ class FitWindow:
     step: float = 0.0
     label: str = ""
     meta: Mapping[str, Any] = field(default_factory=dict)
+    noise: NoiseSpectrum | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=float)
@@ -108,7 +115,12 @@ class FitWindow:
         """The first ``n_samples`` samples of this window."""
         return FitWindow(t=self.t[:n_samples], elements=self.elements, y=self.y[:n_samples],
                          t_step=self.t_step, kind=self.kind, static_torque=self.static_torque,
-                         step=self.step, label=self.label, meta=self.meta)
+                         step=self.step, label=self.label, meta=self.meta, noise=self.noise)
+
+    def with_noise(self, noise: NoiseSpectrum | None) -> "FitWindow":
+        """This window with the recording's noise spectrum attached."""
+        import dataclasses
+        return dataclasses.replace(self, noise=noise)
 
     @classmethod
     def from_frame(cls, frame: pd.DataFrame, mill: Mill, *, t_start: float, t_end: float,
@@ -239,4 +251,38 @@ def windows_from_recording(rec: Any, mill: Mill, segments: Iterable[Any], *,
                        f"{min_s} s without missing samples.")
     n = min(w.n_samples for w in chosen)
     chosen.sort(key=lambda w: w.t[0])
-    return tuple(w.trimmed(n) for w in chosen)
+    noise = recording_noise(frame, mill, segs, n)
+    return tuple(w.trimmed(n).with_noise(noise) for w in chosen)
+
+
+#: Time after a load step's half-height instant left out of the noise estimate, s
+#: (the ring-down of the modes above the transient band has decayed by then).
+RING_DOWN_S = 0.5
+
+#: Most segments the noise estimate takes (evenly spread over a long recording).
+MAX_NOISE_SEGMENTS = 400
+
+
+def recording_noise(frame: pd.DataFrame, mill: Mill, segments: Sequence[Any], n: int
+                    ) -> NoiseSpectrum | None:
+    """The sensor noise's density per element on the quiet stretches of a recording.
+
+    Every load step is left out from its segment's ``t_start`` (less 50 ms)
+    to :data:`RING_DOWN_S` after its ``t_step``; segments are ``n`` samples
+    long (the fit windows' length).  None when fewer than 8 quiet segments
+    remain (the fit then estimates the noise from its windows).
+    """
+    t = frame.index.to_numpy(dtype=float)
+    if t.size < 2 * n:
+        return None
+    from ..model.linear import natural_modes
+    from .noise import bands
+
+    cols = _element_columns(frame, mill)
+    y = frame[list(cols.values())].to_numpy(dtype=float)
+    dt = float(np.median(np.diff(t)))
+    band = bands(natural_modes(mill).frequencies_hz, 1.0 / dt, n * dt).noise
+    exclude = [(float(s.t_start) - 0.05, float(s.t_step) + RING_DOWN_S) for s in segments]
+    return noise_spectrum(t, y, list(cols), segment_n=n, exclude=exclude,
+                          max_segments=MAX_NOISE_SEGMENTS, band=band)
+

@@ -352,7 +352,8 @@ def _fit_rows(fit: Mapping[str, Any], tidx: int | None) -> tuple[dict, list[dict
     erows = []
     for eid, e in (fit.get("elements") or {}).items():
         ci = e.get("gap_ci95") or [None, None]
-        ident_ = e.get("identifiable")
+        # the fit's verdict (identified); older fit JSON had only the identifiable flag
+        ident_ = e.get("identified", e.get("identifiable"))
         erows.append({"transient_idx": tidx, "element": str(eid), "family": family,
                       "gap": _num(e.get("gap")), "gap_ci_lo": _num(ci[0]),
                       "gap_ci_hi": _num(ci[1]), "gap_open": _num(e.get("gap_open")),
