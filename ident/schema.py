@@ -5,10 +5,16 @@ The mill file's TOML (``../shared/spec/mill-config.md``) is parsed by
 description, refusing anything the contract refuses with a
 :class:`~ident.errors.MillFileError` that names the key and, through the
 ``locate`` callback the reader provides, the line.
+
+The keys and tables known are exactly those of mill-config.md (:data:`_TABLE_KEYS`);
+any other key or table is refused, with the known one it probably misspells
+(:func:`difflib.get_close_matches`), since a misspelt optional key would otherwise
+silently lose its value.
 """
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import math
 from typing import Any, Callable, Mapping
@@ -60,6 +66,20 @@ _TABLE_KEYS: dict[str, set[str]] = {
 }
 
 
+def _closest(word: str, known: Any) -> str | None:
+    """The known name ``word`` probably misspells (case-insensitive), or None."""
+    by_lower = {k.lower(): k for k in known}
+    near = difflib.get_close_matches(word.lower(), list(by_lower), n=1, cutoff=0.6)
+    return by_lower[near[0]] if near else None
+
+
+def _unknown(what: str, word: str, known: Any) -> str:
+    near = _closest(word, known)
+    if near is not None:
+        return f"unknown {what} '{word}'; did you mean '{near}'?"
+    return f"unknown {what} '{word}'; expected one of {sorted(known)}"
+
+
 def _get(ctx: _Ctx, d: Mapping[str, Any], key: str, table: str, index: int | None = None,
          label: str | None = None, *, kind: type | tuple = (int, float), required: bool = True,
          default: Any = None) -> Any:
@@ -90,17 +110,37 @@ def _positive(ctx: _Ctx, v: float, table: str, index: int | None, key: str, labe
     return v
 
 
+#: The top-level tables: plain ``[table]`` or arrays ``[[table]]``.
+_ARRAY_TABLES = ("mass", "element", "bearing", "channel")
+_PLAIN_TABLES = ("mill", "operation", "load", "motor")
+
+
 def _check_unknown_keys(ctx: _Ctx, d: Mapping[str, Any], table: str, index: int | None,
                         label: str | None) -> None:
-    # Unknown keys are accepted (the contract allows more keys) but a key of a
-    # known table that is plainly misspelled would silently vanish; we accept
-    # extra keys only when they do not shadow a known one case-insensitively.
+    """Refuse a key the table does not know (mill-config.md), naming the likely one."""
     known = _TABLE_KEYS[table]
-    lower = {k.lower(): k for k in known}
     for k in d:
-        if k not in known and k.lower() in lower:
-            raise ctx.error(f"unknown key '{k}'; did you mean '{lower[k.lower()]}'?", table, index,
-                            k, label)
+        if k not in known:
+            raise ctx.error(_unknown("key", k, known), table, index, k, label)
+
+
+def _check_unknown_tables(ctx: _Ctx, data: Mapping[str, Any]) -> None:
+    """Refuse a top-level table or key mill-config.md does not define."""
+    known = _PLAIN_TABLES + _ARRAY_TABLES
+    for k, v in data.items():
+        if k in known:
+            continue
+        if isinstance(v, Mapping) or (isinstance(v, list) and v and
+                                      all(isinstance(x, Mapping) for x in v)):
+            brackets = "[[{}]]" if isinstance(v, list) else "[{}]"
+            near = _closest(k, known)
+            hint = (f"did you mean {brackets.format(near)}?" if near is not None else
+                    f"expected {[f'[{t}]' for t in _PLAIN_TABLES]} and "
+                    f"{[f'[[{t}]]' for t in _ARRAY_TABLES]}")
+            raise MillFileError(f"unknown table {brackets.format(k)}; {hint}", path=ctx.path,
+                                key=k, line=ctx.locate(k, None, None))
+        raise MillFileError(_unknown("top-level key", k, known) + " (every key belongs in a "
+                            "table)", path=ctx.path, key=k, line=ctx.locate("", None, k))
 
 
 def _list_of_tables(ctx: _Ctx, data: Mapping[str, Any], table: str, required: bool) -> list:
@@ -152,11 +192,13 @@ def mill_from_mapping(data: Mapping[str, Any], *, path: str | None = None,
         disconnected graph or an unknown stiffness kind.
     """
     ctx = _Ctx(path, locate)
+    _check_unknown_tables(ctx, data)
     mill_t = _table(ctx, data, "mill")
     _check_unknown_keys(ctx, mill_t, "mill", None, None)
     name = _get(ctx, mill_t, "name", "mill", kind=str)
     description = _get(ctx, mill_t, "description", "mill", kind=str, required=False, default="")
     op = _table(ctx, data, "operation")
+    _check_unknown_keys(ctx, op, "operation", None, None)
     speed = _positive(ctx, _get(ctx, op, "motor_speed_rpm", "operation"), "operation", None,
                       "motor_speed_rpm", None)
 
@@ -258,6 +300,7 @@ def mill_from_mapping(data: Mapping[str, Any], *, path: str | None = None,
 
     # load ------------------------------------------------------------------------------
     lt = _table(ctx, data, "load")
+    _check_unknown_keys(ctx, lt, "load", None, None)
     lm = _get(ctx, lt, "masses", "load", kind=list)
     ls = _get(ctx, lt, "share", "load", kind=list)
     if not lm:
@@ -430,10 +473,17 @@ def apply_overrides(mill: Mill, overrides: Mapping[str, Any]) -> Mill:
                 if target is not None:
                     break
         if target is None:
-            raise MillFileError(f"unknown id '{ident}' in override {dotted!r}", key=dotted)
+            ids = [*_PLAIN_TABLES, *(e.get("name" if t == "channel" else "id")
+                                     for t in _ARRAY_TABLES for e in data[t])]
+            near = _closest(ident, ids)
+            hint = f"; did you mean '{near}'?" if near is not None else ""
+            raise MillFileError(f"unknown id '{ident}' in override {dotted!r}{hint}",
+                                key=dotted)
         if key not in _TABLE_KEYS[table]:
+            near = _closest(key, _TABLE_KEYS[table])
+            hint = f"; did you mean '{near}'?" if near is not None else ""
             raise MillFileError(f"unknown key '{key}' for a {table}; expected one of "
-                                f"{sorted(_TABLE_KEYS[table])}", key=dotted)
+                                f"{sorted(_TABLE_KEYS[table])}{hint}", key=dotted)
         target[key] = value
     tag = hashlib.sha256((mill.sha256 + repr(sorted(overrides.items()))).encode()).hexdigest()
     return mill_from_mapping(data, path=mill.source, sha256=tag)

@@ -35,16 +35,27 @@ def _locator(text: str):
                 spans[-1] = (t, i, s, n - 1)
             spans.append((name, idx, n, len(lines)))
 
+    def key_line(key: str, first: int, last: int) -> int | None:
+        kre = re.compile(rf"^\s*[\"']?{re.escape(key)}[\"']?\s*=")
+        for n in range(first, last + 1):
+            if kre.match(lines[n - 1]):
+                return n
+        return None
+
     def locate(table: str, index: int | None, key: str | None) -> int | None:
+        if not table:  # a top-level key, before the first table header
+            end = spans[0][2] - 1 if spans else len(lines)
+            return key_line(key, 1, end) if key else None
         for t, i, s, e in spans:
             if t == table and (index is None or i == index):
                 if key is None:
                     return s
-                kre = re.compile(rf"^\s*\"?{re.escape(key)}\"?\s*=")
-                for n in range(s, e + 1):
-                    if kre.match(lines[n - 1]):
-                        return n
-                return s
+                n = key_line(key, s, e)
+                if n is not None:
+                    return n
+                # a sub-table [table.key] of this entry: its header (or the entry's)
+                sub = [s2 for t2, _, s2, _ in spans if t2 == f"{table}.{key}" and s2 > s]
+                return sub[0] if sub else s
         return None
 
     return locate
