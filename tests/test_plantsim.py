@@ -87,7 +87,8 @@ def test_never_imports_ident_model_or_fit():
 
 def test_step_halving_agrees():
     mill = MILLS["cold-s5"]
-    draw = ps.draw_plant(mill, np.random.default_rng(3), n_bars=1, rate_hz=2000.0)
+    draw = ps.draw_plant(mill, np.random.default_rng(3), n_bars=1, rate_hz=2000.0,
+                         accelerometers=False)
     a = ps.simulate_plant(mill, draw, rate_hz=20000.0)
     b = ps.simulate_plant(mill, draw, rate_hz=40000.0)
     pa, pb = a.physics, b.physics[:, ::2][:, :a.physics.shape[1]]
@@ -122,14 +123,14 @@ def test_two_mass_ring_down_frequency(tmp_path):
 
 
 def test_starts_at_rest_in_steady_state():
-    mill, draw, rec = _record("hsm-f1", 4, n_bars=1)
+    mill, draw, rec = _record("hsm-f1", 4, n_bars=1, accelerometers=False)
     first = rec.physics[:, : int(0.5 * rec.sim_rate_hz)]
     level = np.abs(rec.physics).max(axis=1)
     assert np.all(np.ptp(first, axis=1) < 1e-9 * level)
 
 
 def test_gap_open_realised_and_reposition_invisible():
-    mill, draw, rec = _record("hsm-f1", 11, n_bars=3)
+    mill, draw, rec = _record("hsm-f1", 11, n_bars=3, accelerometers=False)
     assert set(draw.floating) == {"C46", "C57"}
     bites = [s for s in rec.truth["steps"] if s["kind"] == "bite"]
     for b, (bar, step) in enumerate(zip(draw.bars, bites)):
@@ -162,7 +163,7 @@ def test_gaps_argument_and_draw_ranges():
 def test_noise_after_chain_matches_truth_sigma():
     checked = 0
     for name, seed in (("cold-s5", 0), ("hsm-f1", 2)):
-        mill, draw, rec = _record(name, seed, n_bars=1)
+        mill, draw, rec = _record(name, seed, n_bars=1, accelerometers=False)
         m = int(rec.rate_hz)                     # the last second: idle
         t = rec.time[-m:]
         for i, c in enumerate(rec.channels):
@@ -181,7 +182,7 @@ def test_noise_after_chain_matches_truth_sigma():
 
 
 def test_quantisation_step_is_full_scale_over_65536():
-    mill, draw, rec = _record("cold-s5", 5, n_bars=1)
+    mill, draw, rec = _record("cold-s5", 5, n_bars=1, accelerometers=False)
     for i, c in enumerate(rec.channels):
         ch = rec.truth["channels"][c]
         fsc, q = ch["full_scale"], ch["quant_step"]
@@ -197,7 +198,7 @@ def test_quantisation_step_is_full_scale_over_65536():
 
 
 def test_t_step_is_at_half_height_of_the_clean_torque():
-    mill, draw, rec = _record("hsm-f1", 8, n_bars=2)
+    mill, draw, rec = _record("hsm-f1", 8, n_bars=2, accelerometers=False)
     est = _total_estimate(mill, rec, rec.clean)
     t = rec.time
     fs = rec.rate_hz
@@ -231,25 +232,72 @@ def test_files_round_trip_through_ident_reader(name, fmt, tmp_path):
     assert tp == tmp_path / "rec.truth.json"
     truth = json.loads(tp.read_text())
     assert truth["mill"] == name and set(truth["elements"]) == set(mill.element_ids)
+    assert set(truth["channels"]) == {c.name for c in mill.channels}
     got = read_recording(path, mill, warn=False)
-    assert len(got.frames) == 1
-    frame = next(iter(got.frames.values()))
-    rate = next(iter(got.rates_hz.values()))
-    assert rate == pytest.approx(draw.rate_hz)
-    assert list(frame.columns) == [c.name for c in mill.torque_channels()]
-    assert len(frame) == rec.data.shape[1]
-    assert np.allclose(frame.index.to_numpy(), rec.time, atol=1e-6)
-    for i, c in enumerate(rec.channels):
-        si = rec.data[i] * ps.UNIT_TO_SI[mill.channel(c).unit]
-        assert np.allclose(frame[c].to_numpy(np.float64), si, rtol=1e-6,
-                           atol=1e-6 * np.abs(si).max())
+    assert len(got.frames) == 2
+    frames = {("accel" if "accel" in k else "torque"): (f, got.rates_hz[k])
+              for k, f in got.frames.items()}
+    for dev, key, names in ((rec, "torque", mill.torque_channels()),
+                            (rec.accel, "accel", mill.acceleration_channels())):
+        frame, rate = frames[key]
+        assert rate == pytest.approx(dev.rate_hz)
+        assert list(frame.columns) == [c.name for c in names]
+        assert len(frame) == dev.data.shape[1]
+        assert np.allclose(frame.index.to_numpy(), dev.time, atol=1e-6)
+        for i, c in enumerate(dev.channels):
+            unit = mill.channel(c).unit
+            si = dev.data[i] * (ps.UNIT_TO_SI | ps.ACCEL_UNIT_TO_SI)[unit]
+            assert np.allclose(frame[c].to_numpy(np.float64), si, rtol=1e-6,
+                               atol=1e-6 * np.abs(si).max())
+    assert frames["accel"][0].index[0] == pytest.approx(truth["accel"]["t_offset"], abs=1e-6)
+    assert 0.0 <= truth["accel"]["t_offset"] <= 0.05
     assert not [q for q in got.issues if q.kind in ("clipped", "rate_mismatch", "dropout",
-                                                    "non_monotonic", "unit_mismatch")]
+                                                    "non_monotonic", "unit_mismatch",
+                                                    "missing_channel")]
     if fmt == "csv":
         header = path.read_text().splitlines()[0].split(",")
         assert header == ["time"] + [f"{c.name} [{c.unit}]" for c in mill.torque_channels()]
+        assert ps.accel_csv_path(path).exists()
         times = np.loadtxt(path, delimiter=",", skiprows=1, usecols=0)
         assert np.all(np.diff(times) > 0)
+
+
+# ---- accelerometers ------------------------------------------------------------------------
+def test_accelerometers_start_at_rest_and_converge_until_the_rattle():
+    mill = MILLS["hsm-f1"]
+    draw = ps.draw_plant(mill, np.random.default_rng(3), n_bars=1, rate_hz=2000.0,
+                         accel_rate_hz=20000.0)
+    a = ps.simulate_plant(mill, draw, rate_hz=20000.0).accel
+    b = ps.simulate_plant(mill, draw, rate_hz=40000.0).accel   # bearing model 100 -> 200 kHz
+    release = draw.bars[0].release.t_start - draw.t_rec0
+    before = a.time < release
+    after = (a.time > release) & (a.time < release + 0.5)
+    for i in range(len(a.channels)):
+        x, y = a.clean[i], b.clean[i]
+        assert np.abs(y[a.time < 1.0]).max() < 1e-9           # static start, no transient
+        assert np.abs(x[before] - y[before]).max() < 3e-3 * np.abs(y[before]).max()
+        # the release rattle (impacts in the clearance) is chaotic: its level converges
+        rx, ry = np.sqrt(np.mean(x[after] ** 2)), np.sqrt(np.mean(y[after] ** 2))
+        assert rx == pytest.approx(ry, rel=0.3)
+
+
+def test_accelerometer_noise_and_quantisation():
+    mill, draw, rec = _record("cold-s5", 0, n_bars=1)
+    acc = rec.accel
+    m = int(0.5 * acc.rate_hz)
+    w = slice(int((0.3 - acc.t_offset) * acc.rate_hz), None)   # before the first bite
+    for i, c in enumerate(acc.channels):
+        ch = rec.truth["channels"][c]
+        y, yc = acc.data[i, w][:m], acc.clean[i, w][:m]
+        assert np.abs(yc).max() < 0.05 * ch["sigma"]
+        assert (y - y.mean()).std() == pytest.approx(ch["sigma_with_quantisation"], rel=0.1)
+        assert 0.001 <= ch["sigma"] / ch["level"] <= 0.01
+        assert ch["sigma_si"] == pytest.approx(ch["sigma"] * ps.G0)
+        n = acc.data[i] / ch["quant_step"]
+        assert ch["quant_step"] == ch["full_scale"] / 65536
+        assert np.allclose(n, np.round(n), atol=1e-6)
+    assert set(rec.truth["bearings"]) == {"B23"}
+    assert 0.5 * 1.5e-4 <= rec.truth["bearings"]["B23"]["clearance"] <= 10 * 1.5e-4
 
 
 def test_make_recording_is_deterministic(tmp_path):

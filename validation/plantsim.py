@@ -59,8 +59,20 @@ rolling level), drift (linear + a 0.02-0.2 Hz sinusoid, 0-1 %) and a random walk
 1, 2, 5 x 10^k holding twice the largest value; step = full scale / 65536).  The total
 noise std after the chain is 0.2-2 % of the channel's rolling level (log-uniform).
 
-Not modelled: bearing accelerometers (the hsm-f1 acceleration channels are absent from
-the recordings; ident's reader warns ``missing_channel``), speed channels, dropouts.
+*Accelerometers* (when the mill maps acceleration channels on its ``[[bearing]]`` s): the
+radial model of mill-config.md per bearing (shaft and housing point masses in the plane,
+the whole mesh force along the line of action, gravity on the shaft, contact beyond the
+radial clearance, housing on a bilinear spring that softens above ``housing_preload``),
+driven by the simulated mesh torque, no feedback; fixed-step RK4 at 5 x the torsional
+rate (100 kHz) in a small C kernel built with ``cc`` on first use (without a compiler
+the accelerometers are left out, with a warning and a note in the truth).  Housing
+acceleration -> AC coupling (first-order high-pass 0.5-3 Hz) -> white noise -> an
+anti-alias filter drawn as above, decimation to 10, 12.5, 20 or 25 kHz -> extra noise,
+a tiny offset -> 16-bit quantisation; a second device starting 0-50 ms after the torque
+device.  The rattle after a release (impacts in the clearance) is chaotic: step halving
+changes its samples, not its level.
+
+Not modelled: speed channels, dropouts and other telemetry faults, drivelines with loops.
 
 Use
 ---
@@ -78,6 +90,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -88,20 +101,30 @@ from scipy import linalg, signal, special
 
 from ident.description import Mill, Quantity, StiffnessKind
 
-__all__ = ["SIM_RATE_HZ", "RECORD_RATES_HZ", "Ramp", "Bar", "AntiAlias", "ChannelNuisance",
-           "PlantDraw", "PlantRecording", "nominal_level", "floating_elements", "draw_plant",
-           "load_profile", "load_fractions", "simulate_plant", "write_plant", "make_recording", "truth_path"]
+__all__ = ["SIM_RATE_HZ", "RECORD_RATES_HZ", "ACCEL_RATES_HZ", "Ramp", "Bar", "AntiAlias",
+           "ChannelNuisance", "AccelChannel", "AccelDraw", "PlantDraw", "PlantDevice",
+           "PlantRecording", "BearingKernelError", "nominal_level", "floating_elements",
+           "load_fractions", "draw_plant", "load_profile", "simulate_plant", "write_plant",
+           "make_recording", "truth_path", "accel_csv_path"]
 
 #: Default physics rate, Hz (an integer multiple of every recorded rate).
 SIM_RATE_HZ = 20_000.0
 #: Recorded rates drawn from, Hz.
 RECORD_RATES_HZ = (1000.0, 2000.0, 2500.0, 4000.0, 5000.0)
+#: Accelerometer rates drawn from, Hz.
+ACCEL_RATES_HZ = (10000.0, 12500.0, 20000.0, 25000.0)
+#: The radial bearing model runs at this multiple of the torsional rate (100 kHz).
+BEARING_OVERSAMPLE = 5
+#: Standard gravity, m/s^2.
+G0 = 9.80665
 #: Channel units this generator writes, and their factor to SI (own table, not ident's).
 UNIT_TO_SI = {"N*m": 1.0, "kN*m": 1.0e3, "MN*m": 1.0e6}
+ACCEL_UNIT_TO_SI = {"m/s^2": 1.0, "g": G0}
 #: 2025-01-01T00:00:00Z, ns: recordings start within a year after it.
 _EPOCH_NS = 1_735_689_600_000_000_000
 _RAMP_KINDS = ("cosine", "linear", "exp", "beta")
 _DEVICE = "/telemetry/torque"
+_ACCEL_DEVICE = "/telemetry/accel"
 
 
 # ==== topology ===========================================================================
@@ -419,6 +442,36 @@ class ChannelNuisance:
 
 
 @dataclass(frozen=True)
+class AccelChannel:
+    """Nuisance of one accelerometer channel, relative to its level.
+
+    The level is the 99.9th percentile of the channel's noise-free recorded ``|a|`` (the
+    rattle bursts); ``noise_frac`` and ``offset_frac`` are fractions of it.
+    """
+
+    name: str
+    noise_frac: float
+    post_share: float
+    offset_frac: float
+
+
+@dataclass(frozen=True)
+class AccelDraw:
+    """The accelerometer conditioner: its own rate, start, filters and channels.
+
+    ``t_offset`` is its first sample after the torque device's, s; ``highpass_hz`` the
+    sensors' AC coupling (first order).
+    """
+
+    rate_hz: float
+    t_offset: float
+    antialias: AntiAlias
+    highpass_hz: float
+    channels: tuple[AccelChannel, ...]
+    block_s: float = 0.1
+
+
+@dataclass(frozen=True)
 class PlantDraw:
     """Every drawn parameter of one recording (see :func:`draw_plant` for the ranges).
 
@@ -440,6 +493,13 @@ class PlantDraw:
     t0_ns: int
     noise_seed: int
     block_s: float = 0.1
+    clearances: Mapping[str, float] = field(default_factory=dict)
+    accel: AccelDraw | None = None
+
+    @property
+    def bearing_rate_hz(self) -> float:
+        """Rate of the radial bearing model, Hz."""
+        return BEARING_OVERSAMPLE * self.sim_rate_hz
 
     @property
     def t_rec0(self) -> float:
@@ -545,7 +605,9 @@ def draw_plant(mill: Mill, rng: np.random.Generator, *, gaps: Mapping[str, float
                n_bars: int = 2, rate_hz: float | None = None,
                sim_rate_hz: float = SIM_RATE_HZ, level: float | None = None,
                floating: Sequence[str] | None = None,
-               first_bite_s: float | None = None) -> PlantDraw:
+               first_bite_s: float | None = None,
+               clearances: Mapping[str, float] | None = None, accelerometers: bool = True,
+               accel_rate_hz: float | None = None) -> PlantDraw:
     """Draw every parameter of one recording from broad ranges.
 
     Parameters
@@ -571,6 +633,16 @@ def draw_plant(mill: Mill, rng: np.random.Generator, *, gaps: Mapping[str, float
         :func:`floating_elements`).
     first_bite_s : float, optional
         Start of the first bite ramp, s (default drawn in 1.0-2.5 s).
+    clearances : mapping of bearing id to m, optional
+        Radial bearing clearances; bearings not named get 0.5-10 x the designed one
+        (log-uniform).
+    accelerometers : bool
+        Draw the accelerometer conditioner (when the mill maps acceleration channels on
+        its bearings); drawn after everything else, so the torsional draw of a seed does
+        not depend on it.
+    accel_rate_hz : float, optional
+        Accelerometer rate; drawn from 10000, 12500, 20000, 25000 Hz otherwise (a
+        divisor of 5 x ``sim_rate_hz``).
 
     Returns
     -------
@@ -591,6 +663,10 @@ def draw_plant(mill: Mill, rng: np.random.Generator, *, gaps: Mapping[str, float
     0-30 % of its variance added after decimation, offset +-2 %, drift 0-1 % split
     between a linear part and a 0.02-0.2 Hz sinusoid, random walk 0-0.5 % at the end.
     Recording start within 2025 (``t0_ns``); MCAP block length 0.05-0.5 s.
+    Accelerometers: clearance 0.5-10 x designed (log-uniform), device start 0-50 ms after
+    the torque device's, AC coupling 0.5-3 Hz (log-uniform), an anti-alias filter drawn as
+    above, per channel noise 0.1-1 % of its level (log-uniform, 0-30 % after decimation)
+    and offset +-0.2 %.
     """
     if n_bars < 1:
         raise ValueError(f"n_bars must be >= 1; got {n_bars}")
@@ -626,12 +702,43 @@ def draw_plant(mill: Mill, rng: np.random.Generator, *, gaps: Mapping[str, float
         lvl = max(abs(fractions[el_index[e.id]]), 0.05) * mean_level * e.ratio
         chans.append(_draw_channel(rng, c.name, lvl / _unit_factor(c.unit)))
     t0_ns = _EPOCH_NS + int(rng.integers(0, 365 * 86400 * 1000)) * 1_000_000
-    return PlantDraw(mill=mill.name, gaps=drawn, floating=fl, friction=friction, bars=bars,
+    draw = PlantDraw(mill=mill.name, gaps=drawn, floating=fl, friction=friction, bars=bars,
                      sim_rate_hz=float(sim_rate_hz), rate_hz=rate,
                      decim_phase=int(rng.integers(decim)), duration=float(duration),
                      antialias=aa, channels=tuple(chans), t0_ns=t0_ns,
                      noise_seed=int(rng.integers(2**63)),
                      block_s=float(rng.choice([0.05, 0.1, 0.2, 0.5])))
+    cl = _draw_clearances(mill, rng, clearances)
+    accel = None
+    if accelerometers and cl and mill.acceleration_channels():
+        accel = _draw_accel(mill, rng, draw.bearing_rate_hz, accel_rate_hz)
+    return dataclasses.replace(draw, clearances=cl, accel=accel)
+
+
+def _draw_clearances(mill: Mill, rng: np.random.Generator,
+                     given: Mapping[str, float] | None) -> dict[str, float]:
+    given = dict(given or {})
+    unknown = set(given) - {b.id for b in mill.bearings}
+    if unknown:
+        raise ValueError(f"clearances names unknown bearings {sorted(unknown)}")
+    return {b.id: float(given[b.id]) if b.id in given else
+            _log_uniform(rng, 0.5, 10.0) * b.clearance for b in mill.bearings}
+
+
+def _draw_accel(mill: Mill, rng: np.random.Generator, bearing_rate: float,
+                rate_hz: float | None) -> AccelDraw:
+    rate = float(rate_hz) if rate_hz is not None else float(rng.choice(ACCEL_RATES_HZ))
+    decim = bearing_rate / rate
+    if abs(decim - round(decim)) > 1e-9:
+        raise ValueError(f"the bearing model's rate {bearing_rate} is not a multiple of the "
+                         f"accelerometer rate {rate}")
+    chans = tuple(AccelChannel(c.name, _log_uniform(rng, 0.001, 0.01),
+                               float(rng.uniform(0.0, 0.3)), float(rng.uniform(-0.002, 0.002)))
+                  for c in mill.acceleration_channels())
+    return AccelDraw(rate_hz=rate, t_offset=round(float(rng.uniform(0.0, 0.05)), 4),
+                     antialias=_draw_antialias(rng, int(round(decim))),
+                     highpass_hz=_log_uniform(rng, 0.5, 3.0), channels=chans,
+                     block_s=float(rng.choice([0.05, 0.1, 0.2])))
 
 
 def _torque_channels(mill: Mill):
@@ -833,6 +940,148 @@ def _element_torques(sys: _System, X: np.ndarray) -> np.ndarray:
     return out
 
 
+# ==== bearings: the radial model (mill-config.md), a small C kernel ========================
+_BEARING_C = r"""/* validation.plantsim: radial bearing model, fixed-step RK4 (see plantsim.py) */
+#include <math.h>
+typedef struct { double ms, mh, kb, cb, cl, kh, kho, pre, ch, sa, ca, g; } P;
+static void rhs(const P *p, const double *x, double F, double *dx) {
+    double rx = x[0] - x[2], ry = x[1] - x[3];
+    double r = sqrt(rx * rx + ry * ry), pen = r - p->cl, fcx = 0.0, fcy = 0.0;
+    if (pen > 0.0) {
+        double nx = rx / r, ny = ry / r;
+        double f = p->kb * pen + p->cb * ((x[4] - x[6]) * nx + (x[5] - x[7]) * ny);
+        if (f > 0.0) { fcx = -f * nx; fcy = -f * ny; }
+    }
+    double u = sqrt(x[2] * x[2] + x[3] * x[3]), u0 = p->pre / p->kh;
+    double s = (u <= u0) ? p->kh * u : p->pre + p->kho * (u - u0);
+    double fhx = -p->ch * x[6], fhy = -p->ch * x[7];
+    if (u > 0.0) { fhx -= s * x[2] / u; fhy -= s * x[3] / u; }
+    dx[0] = x[4]; dx[1] = x[5]; dx[2] = x[6]; dx[3] = x[7];
+    dx[4] = (fcx + F * p->sa) / p->ms;
+    dx[5] = (fcy + F * p->ca) / p->ms - p->g;
+    dx[6] = (fhx - fcx) / p->mh;
+    dx[7] = (fhy - fcy) / p->mh;
+}
+void plantsim_bearings(int nb, long n, double h, const double *F, const double *par,
+                       double *x0, double *A) {
+    for (int b = 0; b < nb; b++) {
+        P p;
+        const double *q = par + 12 * b;
+        p.ms = q[0]; p.mh = q[1]; p.kb = q[2]; p.cb = q[3]; p.cl = q[4]; p.kh = q[5];
+        p.kho = q[6]; p.pre = q[7]; p.ch = q[8]; p.sa = q[9]; p.ca = q[10]; p.g = q[11];
+        const double *f = F + (long)b * n;
+        double *a = A + (long)b * n * 2, *x = x0 + 8 * b;
+        double k1[8], k2[8], k3[8], k4[8], y[8];
+        for (long k = 0; k < n; k++) {
+            rhs(&p, x, f[k], k1);
+            a[2 * k] = k1[6]; a[2 * k + 1] = k1[7];
+            if (k == n - 1) break;
+            double fm = 0.5 * (f[k] + f[k + 1]);
+            for (int i = 0; i < 8; i++) y[i] = x[i] + 0.5 * h * k1[i];
+            rhs(&p, y, fm, k2);
+            for (int i = 0; i < 8; i++) y[i] = x[i] + 0.5 * h * k2[i];
+            rhs(&p, y, fm, k3);
+            for (int i = 0; i < 8; i++) y[i] = x[i] + h * k3[i];
+            rhs(&p, y, f[k + 1], k4);
+            for (int i = 0; i < 8; i++) x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+        }
+    }
+}
+"""
+
+
+class BearingKernelError(RuntimeError):
+    """The C kernel of the bearing model could not be built (no C compiler)."""
+
+
+def _bearing_kernel() -> Callable:
+    """The compiled bearing integrator, built with ``cc`` on first use.
+
+    The shared object is cached under the temporary directory, keyed by the hash of its
+    source; it is built under a unique name and renamed into place.
+    """
+    import ctypes
+    import hashlib
+    import os
+    import subprocess
+    import tempfile
+
+    tag = hashlib.sha256(_BEARING_C.encode()).hexdigest()[:16]
+    folder = Path(tempfile.gettempdir()) / f"plantsim-{os.getuid()}"
+    so = folder / f"bearings-{tag}.so"
+    if not so.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        c_file = folder / f".bearings-{tag}-{os.getpid()}.c"
+        tmp = folder / f".bearings-{tag}-{os.getpid()}.so"
+        c_file.write_text(_BEARING_C)
+        try:
+            subprocess.run([os.environ.get("CC", "cc"), "-O2", "-shared", "-fPIC", "-o", str(tmp),
+                            str(c_file), "-lm"], check=True, capture_output=True, timeout=120)
+            os.replace(tmp, so)
+        except (OSError, subprocess.SubprocessError) as exc:
+            raise BearingKernelError(f"cannot compile the bearing kernel: {exc}") from None
+        finally:
+            c_file.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+    lib = ctypes.CDLL(str(so))
+    arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+    fn = lib.plantsim_bearings
+    fn.argtypes = [ctypes.c_int, ctypes.c_long, ctypes.c_double, arr, arr, arr, arr]
+    fn.restype = None
+    return fn
+
+
+def _bearing_params(b, clearance: float) -> list[float]:
+    a = math.radians(b.pressure_angle_deg)
+    k_open = b.k_housing_open if b.k_housing_open is not None else b.k_housing
+    return [b.shaft_mass, b.housing_mass, b.k_bearing, b.c_bearing, clearance, b.k_housing,
+            k_open, b.housing_preload, b.c_housing, math.sin(a), math.cos(a), G0]
+
+
+def _bearing_static(par: Sequence[float], force: float) -> list[float]:
+    """Static state [x_s, y_s, x_h, y_h, 0, 0, 0, 0] under mesh force ``force`` and gravity."""
+    ms, _, kb, _, cl, kh, kho, pre, _, sa, ca, g = par
+    fx, fy = force * sa, force * ca - ms * g
+    f = math.hypot(fx, fy)
+    if f == 0.0:
+        return [0.0] * 8
+    nx, ny = fx / f, fy / f
+    u = f / kh if f <= pre else pre / kh + (f - pre) / kho
+    r = cl + f / kb
+    return [nx * (u + r), ny * (u + r), nx * u, ny * u, 0.0, 0.0, 0.0, 0.0]
+
+
+def _housing_accels(mill: Mill, draw: PlantDraw, tau: np.ndarray, fs: float,
+                    n: int) -> np.ndarray:
+    """Housing accelerations (bearings x n x [horizontal, vertical]), m/s^2, at 5 x ``fs``.
+
+    Radial model of mill-config.md per bearing: shaft and housing point masses in the
+    plane; the whole mesh force ``T_mesh * ratio / base_radius`` on the shaft along the
+    line of action (``pressure_angle_deg`` from the vertical, up and towards +horizontal
+    for positive torque), gravity on the shaft; shaft-housing contact beyond the radial
+    clearance (``k_bearing``, ``c_bearing`` while in contact, no pull); housing on an
+    isotropic bilinear spring (``k_housing`` up to ``housing_preload``, ``k_housing_open``
+    beyond) with ``c_housing``.  Fixed-step RK4, the mesh force linear between torsional
+    samples.  Starts from the static state; no feedback into the torsion.
+    """
+    fb = BEARING_OVERSAMPLE * fs
+    t_sim = np.arange(tau.shape[1]) / fs
+    tb = np.arange(n) / fb
+    el = {e.id: j for j, e in enumerate(mill.elements)}
+    forces, pars, x0 = [], [], []
+    for b in mill.bearings:
+        f = np.interp(tb, t_sim, tau[el[b.mesh]]) * b.ratio / b.base_radius
+        par = _bearing_params(b, draw.clearances[b.id])
+        forces.append(f)
+        pars.append(par)
+        x0.append(_bearing_static(par, float(f[0])))
+    out = np.zeros((len(forces), n, 2))
+    _bearing_kernel()(len(forces), n, 1.0 / fb, np.ascontiguousarray(forces),
+                      np.ascontiguousarray(pars, dtype=float),
+                      np.ascontiguousarray(x0, dtype=float), out)
+    return out
+
+
 # ==== recording chain ====================================================================
 def _filter_design(aa: AntiAlias, fs: float, rate: float) -> tuple[str, Any, int]:
     """(kind, coefficients, delay compensated in simulation samples)."""
@@ -886,6 +1135,29 @@ def _quantise(x: np.ndarray, full_scale: float) -> np.ndarray:
 
 # ==== the recording ======================================================================
 @dataclass(frozen=True)
+class PlantDevice:
+    """A further recorded device (the accelerometer conditioner).
+
+    ``t_offset`` is its first sample's time from the recording's first (torque) sample, s;
+    ``data`` as recorded (quantised) and ``clean`` (no noise, offset or quantisation), in
+    ``units``, shape (n_channels, n_samples).
+    """
+
+    name: str
+    rate_hz: float
+    t_offset: float
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    data: np.ndarray
+    clean: np.ndarray
+
+    @property
+    def time(self) -> np.ndarray:
+        """Sample times, s from the recording's first sample."""
+        return self.t_offset + np.arange(self.data.shape[1]) / self.rate_hz
+
+
+@dataclass(frozen=True)
 class PlantRecording:
     """One generated recording.
 
@@ -910,6 +1182,8 @@ class PlantRecording:
         Time of physics sample 0 relative to the first recorded sample, s (<= 0).
     truth : dict
         What the truth sidecar holds.
+    accel : PlantDevice or None
+        The accelerometers, when the draw has them.
     """
 
     mill: str
@@ -924,6 +1198,7 @@ class PlantRecording:
     load: np.ndarray
     sim_t_offset: float
     truth: dict = field(repr=False)
+    accel: PlantDevice | None = None
 
     @property
     def time(self) -> np.ndarray:
@@ -1036,29 +1311,38 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def _chain(draw: PlantDraw, physics_unit: np.ndarray, n_rec: int
+def _chain(fs: float, rate: float, phase: int, aa: AntiAlias, x: np.ndarray, n_rec: int,
+           rng: np.random.Generator,
+           nuisance: Callable[[np.ndarray], Sequence[ChannelNuisance]],
+           highpass_hz: float | None = None
            ) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]], dict[str, Any]]:
-    """Recorded and noise-free recorded samples of every channel, and what the chain did."""
-    fs, rate = draw.sim_rate_hz, draw.rate_hz
+    """Recorded and noise-free recorded samples of every row of ``x`` (at ``fs``).
+
+    ``nuisance(clean)`` gives each channel's nuisance (absolute, in its unit) from the
+    noise-free recorded samples; the first recorded sample is simulation sample ``phase``.
+    """
     M = int(round(fs / rate))
-    kind, coef, comp = _filter_design(draw.antialias, fs, rate)
+    kind, coef, comp = _filter_design(aa, fs, rate)
+    if highpass_hz is not None:      # the sensor's AC coupling, before its noise
+        x = _apply_filter("sos", signal.butter(1, highpass_hz, "highpass", fs=fs,
+                                               output="sos"), x)
     h = _impulse(kind, coef, int(fs))
     gain2 = float(np.sum(h ** 2))
     delay_s = float(np.sum(np.arange(h.size) * h) / np.sum(h)) / fs - comp / fs
-    rng = np.random.default_rng(draw.noise_seed)
-    sig_tot = np.array([c.noise_frac * c.level for c in draw.channels])
-    post = np.array([c.post_share for c in draw.channels])
+    idx = phase + comp + M * np.arange(n_rec)
+    clean = _apply_filter(kind, coef, x)[:, idx]
+    chans = nuisance(clean)
+    sig_tot = np.array([c.noise_frac * c.level for c in chans])
+    post = np.array([c.post_share for c in chans])
     sig_pre = np.sqrt(1.0 - post) * sig_tot / math.sqrt(gain2)
     sig_post = np.sqrt(post) * sig_tot
-    noisy = physics_unit + sig_pre[:, None] * rng.standard_normal(physics_unit.shape)
-    idx = draw.decim_phase + comp + M * np.arange(n_rec)
-    clean = _apply_filter(kind, coef, physics_unit)[:, idx]
+    noisy = x + sig_pre[:, None] * rng.standard_normal(x.shape)
     rec = _apply_filter(kind, coef, noisy)[:, idx]
     rec += sig_post[:, None] * rng.standard_normal(rec.shape)
     t = np.arange(n_rec) / rate
     T = n_rec / rate
     info = []
-    for i, c in enumerate(draw.channels):
+    for i, c in enumerate(chans):
         walk = np.cumsum(rng.standard_normal(n_rec)) * (c.walk_end_std / math.sqrt(n_rec))
         rec[i] += (c.offset + c.drift_linear * t / T
                    + c.drift_sine * np.sin(2 * math.pi * c.drift_freq * t + c.drift_phase) + walk)
@@ -1067,9 +1351,13 @@ def _chain(draw: PlantDraw, physics_unit: np.ndarray, n_rec: int
         q = fsc / 65536.0
         info.append({"full_scale": fsc, "quant_step": q, "sigma_pre_filter": float(sig_pre[i]),
                      "sigma_post": float(sig_post[i]), "sigma": float(sig_tot[i]),
-                     "sigma_with_quantisation": float(math.sqrt(sig_tot[i] ** 2 + q * q / 12))})
-    chain = {"antialias": _jsonable(draw.antialias), "decimation": M, "noise_gain": gain2,
-             "delay_s": delay_s, "delay_compensated_samples": comp}
+                     "sigma_with_quantisation": float(math.sqrt(sig_tot[i] ** 2 + q * q / 12)),
+                     "level": c.level, "offset": c.offset, "drift_linear": c.drift_linear,
+                     "drift_sine": c.drift_sine, "drift_freq_hz": c.drift_freq,
+                     "walk_end_std": c.walk_end_std})
+    chain = {"antialias": _jsonable(aa), "decimation": M, "noise_gain": gain2,
+             "delay_s": delay_s, "delay_compensated_samples": comp,
+             "highpass_hz": highpass_hz}
     return rec, clean, info, chain
 
 
@@ -1094,17 +1382,7 @@ def simulate_plant(mill: Mill, draw: PlantDraw, *, rate_hz: float | None = None)
     if draw.mill != mill.name:
         raise ValueError(f"the draw is for mill {draw.mill!r}, not {mill.name!r}")
     if rate_hz is not None:
-        M = rate_hz / draw.rate_hz
-        if abs(M - round(M)) > 1e-9:
-            raise ValueError(f"rate_hz {rate_hz} is not a multiple of the recorded rate "
-                             f"{draw.rate_hz}")
-        scale = rate_hz / draw.sim_rate_hz
-        draw = dataclasses.replace(draw, sim_rate_hz=float(rate_hz),
-                                   decim_phase=int(round(draw.decim_phase * scale)))
-        if draw.antialias.kind == "fir":
-            taps = 2 * int(round((draw.antialias.numtaps - 1) / 2 * scale)) + 1
-            draw = dataclasses.replace(draw, antialias=dataclasses.replace(draw.antialias,
-                                                                           numtaps=taps))
+        draw = _with_sim_rate(draw, float(rate_hz))
     fs = draw.sim_rate_hz
     M = int(round(fs / draw.rate_hz))
     sys = _system(mill, draw)
@@ -1120,13 +1398,110 @@ def simulate_plant(mill: Mill, draw: PlantDraw, *, rate_hz: float | None = None)
     el = {e.id: j for j, e in enumerate(mill.elements)}
     physics = np.array([tau[el[c.element]] * mill.element(c.element).ratio for c in chans])
     factors = np.array([_unit_factor(c.unit) for c in chans])
-    rec, clean, info, chain = _chain(draw, physics / factors[:, None], n_rec)
+    rec, clean, info, chain = _chain(fs, draw.rate_hz, draw.decim_phase, draw.antialias,
+                                     physics / factors[:, None], n_rec,
+                                     np.random.default_rng(draw.noise_seed),
+                                     lambda _clean: draw.channels)
     names = [c.name for c in chans]
     truth = _truth(mill, draw, sys, X, clean, names, info, chain, fs)
+    accel = None
+    if draw.accel is not None:
+        try:
+            accel, accel_truth = _simulate_accel(mill, draw, tau)
+        except BearingKernelError as exc:
+            warnings.warn(f"plantsim: no accelerometers: {exc}", RuntimeWarning, stacklevel=2)
+            accel_truth = {"accel": {"skipped": str(exc)}}
+        truth = _merge_accel_truth(truth, accel_truth)
     return PlantRecording(mill=mill.name, rate_hz=draw.rate_hz, t0_ns=draw.t0_ns,
                           channels=tuple(names), units=tuple(c.unit for c in chans),
                           data=rec, clean=clean, sim_rate_hz=fs, physics=physics, load=L,
-                          sim_t_offset=-draw.t_rec0, truth=truth)
+                          sim_t_offset=-draw.t_rec0, truth=truth, accel=accel)
+
+
+def _scaled_antialias(aa: AntiAlias, scale: float) -> AntiAlias:
+    if aa.kind != "fir":
+        return aa
+    return dataclasses.replace(aa, numtaps=2 * int(round((aa.numtaps - 1) / 2 * scale)) + 1)
+
+
+def _with_sim_rate(draw: PlantDraw, rate_hz: float) -> PlantDraw:
+    """The same draw integrated at another physics rate (FIR lengths kept in seconds)."""
+    M = rate_hz / draw.rate_hz
+    if abs(M - round(M)) > 1e-9:
+        raise ValueError(f"rate_hz {rate_hz} is not a multiple of the recorded rate "
+                         f"{draw.rate_hz}")
+    scale = rate_hz / draw.sim_rate_hz
+    accel = draw.accel
+    if accel is not None:
+        Mb = BEARING_OVERSAMPLE * rate_hz / accel.rate_hz
+        if abs(Mb - round(Mb)) > 1e-9:
+            raise ValueError(f"rate_hz {rate_hz}: the bearing model's rate is not a multiple "
+                             f"of the accelerometer rate {accel.rate_hz}")
+        accel = dataclasses.replace(accel, antialias=_scaled_antialias(accel.antialias, scale))
+    return dataclasses.replace(draw, sim_rate_hz=rate_hz,
+                               decim_phase=int(round(draw.decim_phase * scale)),
+                               antialias=_scaled_antialias(draw.antialias, scale), accel=accel)
+
+
+def _simulate_accel(mill: Mill, draw: PlantDraw, tau: np.ndarray
+                    ) -> tuple[PlantDevice, dict[str, Any]]:
+    """The accelerometer device: radial model at 5 x the torsional rate, then its chain."""
+    ad = draw.accel
+    fs = draw.sim_rate_hz
+    fb = BEARING_OVERSAMPLE * fs
+    M = int(round(fb / ad.rate_hz))
+    _, _, comp = _filter_design(ad.antialias, fb, ad.rate_hz)
+    phase = int(round((draw.t_rec0 + ad.t_offset) * fb))
+    last = (tau.shape[1] - 1) * BEARING_OVERSAMPLE
+    n_rec = (last - phase - comp) // M + 1
+    acc = _housing_accels(mill, draw, tau, fs, phase + comp + M * (n_rec - 1) + 1)
+    bearing = {b.id: i for i, b in enumerate(mill.bearings)}
+    chans = [c for c in mill.acceleration_channels() if c.bearing in bearing]
+    x = np.array([acc[bearing[c.bearing], :, 1 if c.direction == "vertical" else 0]
+                  / _accel_factor(c.unit) for c in chans])
+    drawn = {a.name: a for a in ad.channels}
+
+    def nuisance(clean: np.ndarray) -> list[ChannelNuisance]:
+        out = []
+        for i, c in enumerate(chans):
+            a = drawn[c.name]
+            lvl = float(np.percentile(np.abs(clean[i]), 99.9))
+            out.append(ChannelNuisance(c.name, lvl, a.noise_frac, a.post_share,
+                                       a.offset_frac * lvl, 0.0, 0.0, 0.0, 0.0, 0.0))
+        return out
+
+    rec, clean, info, chain = _chain(fb, ad.rate_hz, phase, ad.antialias, x, n_rec,
+                                     np.random.default_rng([draw.noise_seed, 1]), nuisance,
+                                     highpass_hz=ad.highpass_hz)
+    t_off = phase / fb - draw.t_rec0
+    dev = PlantDevice(_ACCEL_DEVICE, ad.rate_hz, t_off, tuple(c.name for c in chans),
+                      tuple(c.unit for c in chans), rec, clean)
+    channels = {}
+    for i, c in enumerate(chans):
+        channels[c.name] = {"device": _ACCEL_DEVICE, "unit": c.unit, "bearing": c.bearing,
+                            "direction": c.direction, "sigma": info[i]["sigma"],
+                            "sigma_si": info[i]["sigma"] * _accel_factor(c.unit),
+                            **{k: v for k, v in info[i].items() if k != "sigma"}}
+    bearings = {b.id: {"clearance": draw.clearances[b.id], "clearance_design": b.clearance,
+                       "mesh": b.mesh} for b in mill.bearings}
+    return dev, {"accel": {"rate_hz": ad.rate_hz, "t_offset": t_off, "sim_rate_hz": fb,
+                           "n_samples": int(n_rec), "chain": chain},
+                 "bearings": bearings, "channels": channels}
+
+
+def _merge_accel_truth(truth: dict[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(truth)
+    for k, v in extra.items():
+        out[k] = {**out[k], **v} if k == "channels" else v
+    return out
+
+
+def _accel_factor(unit: str) -> float:
+    try:
+        return ACCEL_UNIT_TO_SI[unit]
+    except KeyError:
+        raise ValueError(f"plantsim writes acceleration in {sorted(ACCEL_UNIT_TO_SI)}; "
+                         f"got {unit!r}") from None
 
 
 def _truth(mill: Mill, draw: PlantDraw, sys: _System, X: np.ndarray, clean: np.ndarray,
@@ -1145,12 +1520,11 @@ def _truth(mill: Mill, draw: PlantDraw, sys: _System, X: np.ndarray, clean: np.n
         ch = mill.channel(c.name)
         e = mill.element(ch.element)
         si = _unit_factor(ch.unit) / e.ratio
-        channels[c.name] = {"unit": ch.unit, "element": ch.element, "ratio": e.ratio,
+        channels[c.name] = {"device": _DEVICE, "unit": ch.unit, "element": ch.element,
+                            "ratio": e.ratio,
                             "sigma": info[i]["sigma"], "sigma_si_reduced": info[i]["sigma"] * si,
                             **{k: v for k, v in info[i].items() if k != "sigma"},
-                            "rolling_level": c.level, "offset": c.offset,
-                            "drift_linear": c.drift_linear, "drift_sine": c.drift_sine,
-                            "drift_freq_hz": c.drift_freq, "walk_end_std": c.walk_end_std}
+                            "rolling_level": c.level}
     return {"generator": "validation.plantsim", "version": 1, "mill": mill.name,
             "rate_hz": draw.rate_hz, "sim_rate_hz": fs, "t0_ns": draw.t0_ns,
             "n_samples": int(clean.shape[1]), "duration_s": clean.shape[1] / draw.rate_hz,
@@ -1168,10 +1542,22 @@ def truth_path(path: str | Path) -> Path:
     return p.with_name(p.stem + ".truth.json")
 
 
-def _write_csv(rec: PlantRecording, path: Path) -> None:
-    header = ",".join(["time"] + [f"{c} [{u}]" for c, u in zip(rec.channels, rec.units)])
-    cols = np.column_stack([rec.time] + [rec.data[i] for i in range(len(rec.channels))])
-    fmt = ["%.7f"] + ["%.10g"] * len(rec.channels)
+def _devices(rec: PlantRecording) -> list[PlantDevice]:
+    """Every device of a recording, the torque device first (at time 0)."""
+    torque = PlantDevice(_DEVICE, rec.rate_hz, 0.0, rec.channels, rec.units, rec.data, rec.clean)
+    return [torque] + ([rec.accel] if rec.accel is not None else [])
+
+
+def accel_csv_path(path: str | Path) -> Path:
+    """The accelerometer device's CSV beside ``name.csv``: ``name.accel.csv``."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}.accel{p.suffix}")
+
+
+def _write_csv_device(dev: PlantDevice, path: Path) -> None:
+    header = ",".join(["time"] + [f"{c} [{u}]" for c, u in zip(dev.channels, dev.units)])
+    cols = np.column_stack([dev.time] + [dev.data[i] for i in range(len(dev.channels))])
+    fmt = ["%.7f"] + ["%.10g"] * len(dev.channels)
     with open(path, "w", encoding="ascii", newline="\n") as fh:
         np.savetxt(fh, cols, fmt=fmt, delimiter=",", header=header, comments="")
 
@@ -1188,26 +1574,27 @@ def _json_schema() -> bytes:
     return json.dumps(schema).encode()
 
 
-def _write_mcap(rec: PlantRecording, path: Path, block_s: float) -> None:
+def _write_mcap(rec: PlantRecording, path: Path, block_s: Sequence[float]) -> None:
     from mcap.writer import Writer
 
-    n = rec.data.shape[1]
-    bs = max(1, int(round(block_s * rec.rate_hz)))
     with open(path, "wb") as fh:
         w = Writer(fh)
         w.start(profile="", library="validation.plantsim")
         sid = w.register_schema(name="ident.SampleBlock", encoding="jsonschema",
                                 data=_json_schema())
-        cid = w.register_channel(topic=_DEVICE, message_encoding="json", schema_id=sid)
         w.add_metadata("ident.recording", {"mill": rec.mill,
                                            "recording_id": f"plantsim-{rec.t0_ns}"})
-        for seq, start in enumerate(range(0, n, bs)):
-            t0 = rec.t0_ns + int(round(start * 1e9 / rec.rate_hz))
-            block = rec.data[:, start:start + bs]
-            msg = {"t0_ns": t0, "rate_hz": rec.rate_hz, "channels": list(rec.channels),
-                   "units": list(rec.units), "data": [[float(v) for v in row] for row in block]}
-            w.add_message(channel_id=cid, log_time=t0, publish_time=t0, sequence=seq,
-                          data=json.dumps(msg, separators=(",", ":")).encode())
+        for dev, bsec in zip(_devices(rec), block_s):
+            cid = w.register_channel(topic=dev.name, message_encoding="json", schema_id=sid)
+            t_dev = rec.t0_ns + int(round(dev.t_offset * 1e9))
+            bs = max(1, int(round(bsec * dev.rate_hz)))
+            for seq, start in enumerate(range(0, dev.data.shape[1], bs)):
+                t0 = t_dev + int(round(start * 1e9 / dev.rate_hz))
+                msg = {"t0_ns": t0, "rate_hz": dev.rate_hz, "channels": list(dev.channels),
+                       "units": list(dev.units),
+                       "data": dev.data[:, start:start + bs].tolist()}
+                w.add_message(channel_id=cid, log_time=t0, publish_time=t0, sequence=seq,
+                              data=json.dumps(msg, separators=(",", ":")).encode())
         w.finish()
 
 
@@ -1215,17 +1602,24 @@ def write_plant(rec: PlantRecording, path: str | Path) -> Path:
     """Write a recording (CSV or MCAP by extension) and its truth sidecar.
 
     CSV: ``time`` in float seconds from the first sample, headers ``name [unit]``, one
-    rate.  MCAP: one topic ``/telemetry/torque`` of JSON ``ident.SampleBlock`` messages
-    (official ``mcap`` writer), ``ident.recording`` metadata.  Returns the truth path.
+    rate per file (the accelerometers, when present, in ``name.accel.csv`` on the same
+    time origin).  MCAP: topics ``/telemetry/torque`` and ``/telemetry/accel`` of JSON
+    ``ident.SampleBlock`` messages (official ``mcap`` writer), ``ident.recording``
+    metadata.  Returns the truth path.
     """
     p = Path(path)
     ext = p.suffix.lower()
     p.parent.mkdir(parents=True, exist_ok=True)
+    draw = rec.truth.get("draw", {})
     if ext == ".csv":
-        _write_csv(rec, p)
+        devices = _devices(rec)
+        _write_csv_device(devices[0], p)
+        if len(devices) > 1:
+            _write_csv_device(devices[1], accel_csv_path(p))
     elif ext == ".mcap":
-        block_s = float(rec.truth.get("draw", {}).get("block_s", 0.1))
-        _write_mcap(rec, p, block_s)
+        blocks = [float(draw.get("block_s", 0.1)),
+                  float((draw.get("accel") or {}).get("block_s", 0.1))]
+        _write_mcap(rec, p, blocks)
     else:
         raise ValueError(f"unknown recording format {p.suffix!r}; expected .csv or .mcap")
     tp = truth_path(p)
