@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import RecordingError
 from .grid import DeviceGrid, empty_buffer
+from . import quality
 from .quality import IssueLog
 
 __all__ = ["read_csv", "split_header", "csv_siblings", "first_time", "last_time"]
@@ -98,8 +99,8 @@ def _sniff(path: Path, log: IssueLog) -> tuple[int, str, list[str], list[str], s
     if counts[sep] == 0:
         raise log.fatal("unreadable", f"the CSV header {header[:80]!r} has no ',', ';' or tab "
                         "separator; expected a time column and at least one channel")
-    names = next(csv.reader([header], delimiter=sep))
-    first = next(csv.reader([lines[n_comment + 1]], delimiter=sep)) \
+    names = _cells(header, sep)
+    first = _cells(lines[n_comment + 1], sep) \
         if n_comment + 1 < len(lines) else []
     decimal = "."
     if sep != "," and any(_DECIMAL_COMMA.match(f) for f in first):
@@ -118,20 +119,28 @@ def _time_column(names: list[str], log: IssueLog) -> int:
                     "'time' (float seconds or ISO-8601)")
 
 
+#: An empty ISO-8601 time cell, as int64 ns (NumPy's NaT).
+_NO_TIME = np.iinfo(np.int64).min
+
+
 def _iso_to_ns(col, log: IssueLog) -> np.ndarray:
-    """ISO-8601 strings (arrow array) -> int64 ns since the epoch (UTC)."""
+    """ISO-8601 strings (arrow array) -> int64 ns since the epoch (UTC); empty: ``_NO_TIME``."""
     import pyarrow as pa
+    import pyarrow.compute as pc
 
     for ty in (pa.timestamp("ns", tz="UTC"), pa.timestamp("ns")):
         try:
-            return col.cast(ty).cast(pa.int64()).to_numpy(zero_copy_only=False)
+            ns = col.cast(ty).cast(pa.int64())
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
             continue
+        if ns.null_count:
+            ns = pc.fill_null(ns, _NO_TIME)
+        return ns.to_numpy(zero_copy_only=False)
     import pandas as pd
 
     try:
         ts = pd.to_datetime(col.to_pandas(), format="ISO8601", utc=True)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise log.fatal("unreadable", f"time column holds a value that is neither float seconds "
                         f"nor an ISO-8601 timestamp ({exc})") from None
     return ts.to_numpy(dtype="datetime64[ns]").view(np.int64)
@@ -208,7 +217,7 @@ def _parse_time(text: str, decimal: str, log: IssueLog) -> float:
         ts = pd.Timestamp(text)
         ts = ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
         return ts.value / 1e9
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise log.fatal("unreadable", f"time cell {text!r} is neither float seconds nor an "
                         f"ISO-8601 timestamp ({exc})") from None
 
@@ -281,9 +290,11 @@ def last_time(path: Path, log: IssueLog) -> float:
         cells = line.split(sep)
         if len(cells) > ti and cells[ti].strip():
             try:
-                return _parse_time(cells[ti], decimal, log)
+                t = _parse_time(cells[ti], decimal, log)
             except RecordingError:
                 continue
+            if math.isfinite(t):  # as the reader, which drops rows without a valid time
+                return t
     return first_time(path, log)
 
 
@@ -300,6 +311,14 @@ def _count_lines(path: Path) -> int:
 
 _ARROW_CELL = re.compile(r"column #(\d+)\b.*invalid value '(.*)'\s*$", re.S)
 _NULLS = ("", "nan", "NaN", "NAN", "null", "NULL", "NA", "N/A", "-nan")
+
+
+def _cells(line: str, sep: str) -> list[str]:
+    """The fields of one line (the csv module's quoting; a plain split if it refuses)."""
+    try:
+        return next(csv.reader([line], delimiter=sep), [])
+    except csv.Error:
+        return line.split(sep)
 
 
 def _parse_error(path: Path, log: _FileLog, exc: BaseException, *, n_comment: int, sep: str,
@@ -336,7 +355,7 @@ def _parse_error(path: Path, log: _FileLog, exc: BaseException, *, n_comment: in
                         value is None and line.count(sep) == ncols - 1 and '"' not in line):
                     prev = line
                     continue
-                cells = next(csv.reader([line], delimiter=sep), [])
+                cells = _cells(line, sep)
                 if len(cells) != ncols:
                     found = (lineno, cells, None)
                     break
@@ -355,7 +374,7 @@ def _parse_error(path: Path, log: _FileLog, exc: BaseException, *, n_comment: in
         return log.fatal("unreadable", f"line {lineno} has {len(cells)} fields but the header "
                          f"has {ncols}; expected one value per column", time=t)
     if col == ti:
-        t = time_of(next(csv.reader([prev], delimiter=sep), [])) if prev else None
+        t = time_of(_cells(prev, sep)) if prev else None
         after = f" (after t={t:.6f} s)" if t is not None else ""
         return log.fatal("unreadable", f"line {lineno}: the time {value!r} is neither float "
                          f"seconds nor an ISO-8601 timestamp{after}", time=t)
@@ -472,7 +491,15 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
     # a view keeps the spare capacity alive; copy only when that is more than 10 %
     d_buf = d_buf[:, :n] if d_buf.shape[1] <= 1.1 * n else np.ascontiguousarray(d_buf[:, :n])
     if iso:
-        start_ns = int(t_buf.min())
+        bad = t_buf == _NO_TIME
+        if bad.any():
+            log.add("non_monotonic", f"{int(bad.sum())} rows have no valid time; dropped",
+                    device=device, channel=",".join(parsed[i][0] for i in kept))
+            t_buf = t_buf[~bad]
+            d_buf = d_buf[:, ~bad]
+            if not t_buf.size:
+                raise log.fatal("unreadable", "no row has a valid time")
+        start_ns = int(t_buf[0])
         t_rel = (t_buf - start_ns).astype(np.float64) / 1e9
     else:
         t_rel = t_buf
@@ -482,7 +509,9 @@ def _read_one(path: Path, device: str, *, keep: Callable[[str], bool], log: Issu
                     "dropped", device=device, channel=",".join(parsed[i][0] for i in kept))
             t_rel = t_rel[~bad]
             d_buf = d_buf[:, ~bad]
-        start = float(t_rel.min())
+            if not t_rel.size:
+                raise log.fatal("unreadable", "no row has a valid time")
+        start = float(t_rel[0])
         # float seconds: an absolute epoch time (>= 1e8 s, 1973) keeps its origin
         start_ns = int(round(start * 1e9))
         t_rel -= start
@@ -525,6 +554,14 @@ def _to_grid(path: Path, device: str, t: np.ndarray, data: np.ndarray, start_ns:
         more = f" ({n_back} rows in all are not after the row before)" if n_back > 1 else ""
         raise log.fatal("non_monotonic", f"time {what}{more}; expected strictly increasing "
                         "times: the order of samples is not guessed", time=b)
+    jump = next(((s + int(np.argmax(d)), float(d.max())) for s, d in _diffs(t)
+                 if d.max() > quality.MAX_DROPOUT_S), None)
+    if jump is not None:
+        i, d = jump
+        raise log.fatal("time_jump", f"time jumps from t={t[i] + t_offset_s:.6f} s to "
+                        f"t={t[i + 1] + t_offset_s:.6f} s: no row for {d:.6g} s, longer than a "
+                        f"dropout may last ({quality.MAX_DROPOUT_S:g} s); a wrong time stamp?",
+                        channel=names, time=float(t[i + 1]) + t_offset_s)
     dt = float(np.median(np.diff(t[:2_000_001])))  # the first 2e6 steps tell the rate
     span = float(t[-1] - t[0])
     rate = 1.0 / dt

@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from .grid import DeviceGrid, empty_buffer
+from . import quality
 from .quality import RATE_TOLERANCE, IssueLog
 from .sampleblock import SCHEMA_NAME, Block, BlockDecodeError, make_decoder
 
@@ -174,13 +175,24 @@ class _Placer:
         # not prefilled: only the samples no block covers (the gaps) are set to NaN, at
         # the end, so the untouched pages of a large buffer cost nothing until written
         self.buf = empty_buffer((len(rows), max(capacity, block.data.shape[1])), np.float32)
+        self.span = (0, block.data.shape[1])  # first and end sample of the blocks placed
         self.pos: list[int] = []
         self.n: list[int] = []
         self.t0: list[int] = []
 
-    def put(self, block: Block) -> None:
+    def put(self, block: Block, log: IssueLog) -> None:
         n = block.data.shape[1]
         pos = int(round((block.t0_ns - self.ref) * self.rate / 1e9))
+        lo, hi = self.span
+        gap = max(lo - (pos + n), pos - hi) / self.rate
+        if gap > quality.MAX_DROPOUT_S:  # before the buffer grows to hold the gap
+            raise log.fatal(
+                "time_jump", f"device {self.topic!r}: the block at t0_ns={block.t0_ns} lies "
+                f"{gap:.6g} s {'before' if pos < lo else 'after'} the device's other blocks, "
+                f"longer than a dropout may last ({quality.MAX_DROPOUT_S:g} s); a wrong time "
+                "stamp?", channel=",".join(block.channels),
+                time=(block.t0_ns - self.ref) / 1e9)
+        self.span = (min(lo, pos), max(hi, pos + n))
         i = pos - self.lo
         k, cap = self.buf.shape
         if i < 0 or i + n > cap:
@@ -341,7 +353,7 @@ class _Assembler:
             if not any(self.keep(c) for c in block.channels):
                 # still note the device so that unknown/missing channels are reported
                 self.placers[topic] = _Placer(topic, block, self.keep, 0)
-                self.placers[topic].put(block)
+                self.placers[topic].put(block, self.log)
                 self.skip_topics.add(topic)
                 return
             cap = self.counts.get(channel_id, 0) * block.data.shape[1]
@@ -349,19 +361,24 @@ class _Assembler:
                 span = (self.window[1] - self.window[0]) * block.rate_hz / 1e9
                 cap = min(cap, int(span) + 2 * block.data.shape[1])
             placer = self.placers[topic] = _Placer(topic, block, self.keep, cap)
-        elif block.channels != placer.channels or block.rate_hz != placer.rate:
-            what = ("channels " + str(list(block.channels))) if block.channels != placer.channels \
-                else f"rate_hz={block.rate_hz:g}"
-            was = list(placer.channels) if block.channels != placer.channels \
-                else f"rate_hz={placer.rate:g}"
-            kind = "rate_mismatch" if block.channels == placer.channels else "unreadable"
+        elif (block.channels != placer.channels or block.rate_hz != placer.rate
+              or block.units != placer.units):
+            if block.channels != placer.channels:
+                what, was = "channels " + str(list(block.channels)), list(placer.channels)
+                kind = "unreadable"
+            elif block.rate_hz != placer.rate:
+                what, was = f"rate_hz={block.rate_hz:g}", f"rate_hz={placer.rate:g}"
+                kind = "rate_mismatch"
+            else:  # the same values in other units would be misconverted
+                what, was = f"units {list(block.units)}", list(placer.units)
+                kind = "unit_mismatch"
             raise self.log.fatal(kind, f"device {topic!r} changes within the recording: a block "
                                  f"at t0_ns={block.t0_ns} has {what}, earlier blocks {was}; "
-                                 "expected one layout and rate per device (topic)",
+                                 "expected one layout, rate and unit per device (topic)",
                                  channel=",".join(block.channels))
         if abs(log_time - block.t0_ns) * block.rate_hz > 1e9:
             self.bad_times.append((topic, log_time, block.t0_ns))  # reported later
-        placer.put(block)
+        placer.put(block, self.log)
 
     @property
     def n_blocks(self) -> int:

@@ -7,7 +7,8 @@ The readers call these while they assemble a recording; every finding is a
 ============================  ==========================================================
 kind                          handling
 ============================  ==========================================================
-``unit_mismatch``             fatal: a recorded unit other than the mill file's (or ``raw``)
+``unit_mismatch``             fatal: a recorded unit other than the mill file's (or ``raw``),
+                              or an MCAP device whose units change between its blocks
 ``rate_mismatch``             fatal: a device's declared rate disagrees with its block
                               timestamps by more than 0.5 %, or a CSV file whose time
                               steps are not one rate
@@ -40,6 +41,9 @@ kind                          handling
                               starting less than a sample after the one before (its first
                               sample shares the grid point of that block's last; the block
                               read last wins)
+``time_jump``                 fatal: a device's time stamps jump by more than
+                              :data:`MAX_DROPOUT_S` (an hour): a wrong time stamp, not a
+                              dropout (its NaN rows would fill memory)
 ``timestamp_mismatch``        warning: an MCAP ``log_time`` disagreeing with the block's
                               ``t0_ns`` by more than a sample (``t0_ns`` is used)
 ``unknown_channel``           warning: a channel the mill file does not map; ignored
@@ -64,7 +68,7 @@ from ..errors import DataQualityWarning, RecordingError
 from .recording import QualityIssue
 
 __all__ = ["IssueLog", "find_runs", "scan_channel", "gap_issues", "RATE_TOLERANCE",
-           "CLIP_MIN_RUN", "MAX_ISSUES_PER_KIND"]
+           "CLIP_MIN_RUN", "MAX_ISSUES_PER_KIND", "MAX_DROPOUT_S"]
 
 #: Relative disagreement between declared and timestamp rate that is fatal.
 RATE_TOLERANCE = 0.005
@@ -72,6 +76,9 @@ RATE_TOLERANCE = 0.005
 CLIP_MIN_RUN = 4
 #: Findings of one kind on one channel listed one by one; the rest are summarised.
 MAX_ISSUES_PER_KIND = 10
+#: Longest dropout, s: a gap in a device's time stamps beyond this is taken for a wrong
+#: time stamp (a corrupt or cut row or block), not for a telemetry dropout to fill with NaN.
+MAX_DROPOUT_S = 3600.0
 
 _INT16_FULL_SCALE = 32767.0
 

@@ -33,6 +33,7 @@ from ..units import normalize_unit, quantity_of_unit, to_si_factor
 from .csv_reader import first_time, last_time, read_csv
 from .grid import DeviceGrid, empty_buffer
 from .mcap_reader import MAX_BLOCK_NS, mcap_span_ns, read_mcap
+from . import quality
 from .quality import IssueLog, gap_issues, gap_mask_of, scan_channel
 from .recording import Recording
 
@@ -151,8 +152,12 @@ def recording_span(path: str | Path) -> float:
     from .csv_reader import csv_siblings
 
     files = [p] + csv_siblings(p)
-    firsts = [first_time(f, log) for f in files]
-    return max(last_time(f, log) for f in files) - min(firsts)
+    first = min(first_time(f, log) for f in files)
+    last = max(last_time(f, log) for f in files)
+    if not (math.isfinite(first) and math.isfinite(last) and last >= first):
+        raise log.fatal("non_monotonic", f"the first and last rows' times ({first!r} s and "
+                        f"{last!r} s) give no span; expected finite, increasing times")
+    return last - first
 
 
 def check_recording_path(path: str | Path) -> Path:
@@ -207,13 +212,17 @@ def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: floa
         Windows ``[k * window_s - overlap_s, (k + 1) * window_s)`` s from the
         recording's start (times stay relative to that start), until the end of the
         recording.  A window inside the recording holding no sample at all (a long
-        dropout) is skipped with a :class:`~ident.errors.DataQualityWarning`.
+        dropout) is skipped with a :class:`~ident.errors.DataQualityWarning`; windows
+        without a sample for longer than a dropout may last
+        (:data:`ident.io.quality.MAX_DROPOUT_S`) before the recording's last time stamp
+        are a RecordingError (that time stamp is wrong).
     """
     if not (window_s > 0 and 0 <= overlap_s < window_s):
         raise RecordingError(f"expected window_s > 0 and 0 <= overlap_s < window_s. Got "
                              f"window_s={window_s!r}, overlap_s={overlap_s!r}", path=str(path))
     last = recording_span(path)
     k = 0
+    empty_from: float | None = None  # start of the run of empty windows
     while k * window_s <= last + MAX_BLOCK_NS / 1e9:
         lo = max(0.0, k * window_s - overlap_s)
         try:
@@ -223,9 +232,17 @@ def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: floa
                 raise
             if k * window_s > last:
                 return  # past the last block's start: the recording has ended
+            empty_from = k * window_s if empty_from is None else empty_from
+            if (k + 1) * window_s - empty_from > quality.MAX_DROPOUT_S:
+                raise RecordingError(
+                    f"time jump: no sample from t={empty_from:.6f} s for more than a dropout "
+                    f"may last ({quality.MAX_DROPOUT_S:g} s), yet the recording's last time "
+                    f"stamp is at t={last:.6f} s; a wrong time stamp?", path=str(path),
+                    time=empty_from) from None
             warnings.warn(f"{exc} (a dropout longer than the window); skipped",
                           DataQualityWarning, stacklevel=2)
         else:
+            empty_from = None
             if k and rec.duration < k * window_s:
                 return  # only the overlap with the window before: the recording has ended
             yield rec

@@ -256,7 +256,7 @@ def _protobuf_decoder(schema_data: bytes) -> Callable[[bytes], Block]:
 
     def decode(buf: bytes) -> Block:
         c = cache[0]
-        if c is not None and buf[0] == t0_tag:
+        if c is not None and buf and buf[0] == t0_tag:
             try:
                 t0, pos = _read_varint(buf, 1)
                 middle = c[0]
