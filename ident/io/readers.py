@@ -222,7 +222,16 @@ def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: floa
                              f"window_s={window_s!r}, overlap_s={overlap_s!r}", path=str(path))
     last = recording_span(path)
     k = 0
-    empty_from: float | None = None  # start of the run of empty windows
+    empty: list = []  # the run of empty windows so far: [first error, its start, count]
+
+    def skipped() -> None:  # one warning per run of empty windows (a long dropout)
+        if empty:
+            exc, _, n = empty
+            more = f"; {n} windows up to t={k * window_s:.4f} s hold no sample" if n > 1 else ""
+            warnings.warn(f"{exc} (a dropout longer than the window{more}); skipped",
+                          DataQualityWarning, stacklevel=3)
+            empty.clear()
+
     while k * window_s <= last + MAX_BLOCK_NS / 1e9:
         lo = max(0.0, k * window_s - overlap_s)
         try:
@@ -231,22 +240,24 @@ def iter_recording(path: str | Path, mill: Mill | None = None, *, window_s: floa
             if "empty window: " not in str(exc):
                 raise
             if k * window_s > last:
+                skipped()
                 return  # past the last block's start: the recording has ended
-            empty_from = k * window_s if empty_from is None else empty_from
-            if (k + 1) * window_s - empty_from > quality.MAX_DROPOUT_S:
+            if not empty:
+                empty[:] = [exc, k * window_s, 0]
+            empty[2] += 1
+            if (k + 1) * window_s - empty[1] > quality.MAX_DROPOUT_S:
                 raise RecordingError(
-                    f"time jump: no sample from t={empty_from:.6f} s for more than a dropout "
+                    f"time jump: no sample from t={empty[1]:.6f} s for more than a dropout "
                     f"may last ({quality.MAX_DROPOUT_S:g} s), yet the recording's last time "
                     f"stamp is at t={last:.6f} s; a wrong time stamp?", path=str(path),
-                    time=empty_from) from None
-            warnings.warn(f"{exc} (a dropout longer than the window); skipped",
-                          DataQualityWarning, stacklevel=2)
+                    time=empty[1]) from None
         else:
-            empty_from = None
+            skipped()
             if k and rec.duration < k * window_s:
                 return  # only the overlap with the window before: the recording has ended
             yield rec
         k += 1
+    skipped()
 
 
 def _select(g: DeviceGrid, names: set[str]) -> DeviceGrid:
