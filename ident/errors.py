@@ -43,6 +43,8 @@ class MillFileError(IdentError, ValueError):
         self.path = path
         self.key = key
         self.line = line
+        #: the message without the file, line and key in front
+        self.reason = message
         where = []
         if path:
             where.append(str(path) + (f":{line}" if line else ""))
@@ -74,6 +76,8 @@ class RecordingError(IdentError, ValueError):
         self.path = path
         self.channel = channel
         self.time = time
+        #: the message without the file, channel and time in front
+        self.reason = message
         where = []
         if path:
             where.append(str(path))

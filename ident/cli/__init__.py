@@ -32,8 +32,12 @@ COMMANDS: dict[str, str] = {
 
 
 def _parser() -> tuple[argparse.ArgumentParser, dict]:
+    from .. import __version__
+
     parser = argparse.ArgumentParser(
         prog="ident", description="Identification and wear diagnostics of rolling-mill drivelines.")
+    parser.add_argument("--version", action="version", version=f"ident {__version__}",
+                        help="print the version of ident and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     modules = {}
@@ -53,9 +57,15 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
     parser, modules = _parser()
     args = parser.parse_args(argv)
-    warnings.simplefilter("default")
+
+    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"ident {args.command}: warning: {message}", file=sys.stderr)
+
     try:
-        code = modules[args.command].run(args)
+        with warnings.catch_warnings():  # warnings as one line each, not two
+            warnings.simplefilter("default")
+            warnings.showwarning = one_line
+            code = modules[args.command].run(args)
     except IdentError as exc:
         print(f"ident {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -5,19 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
-from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
 from ..description import Mill
-from ..errors import IdentError, MillFileError
+from ..errors import IdentError, MillFileError, RecordingError
 from ..io.millfile import load_mill
+from ..io.recording import Recording
+from ..io.writers import AtomicFile
 
-__all__ = ["add_common", "load_mill_arg", "write_json", "to_jsonable", "parse_sets"]
+__all__ = ["add_common", "load_mill_arg", "write_json", "to_jsonable", "parse_sets",
+           "require_channels"]
 
 
 def add_common(p: argparse.ArgumentParser, *, out: bool = True, out_required: bool = False,
@@ -30,27 +30,104 @@ def add_common(p: argparse.ArgumentParser, *, out: bool = True, out_required: bo
 
 
 def load_mill_arg(args: argparse.Namespace) -> Mill:
-    """Load ``--mill`` and apply any ``--set ID.KEY=VALUE`` overrides."""
+    """Load ``--mill`` and apply any ``--set ID.KEY=VALUE`` overrides.
+
+    Raises
+    ------
+    MillFileError
+        The mill file is bad (naming the file), or an override is (naming ``--set``,
+        the key and the value: the file itself was valid).
+    """
     mill = load_mill(args.mill)
     sets = getattr(args, "set", None)
     if sets:
-        mill = mill.with_overrides(parse_sets(sets))
+        overrides = parse_sets(sets)
+        try:
+            mill = mill.with_overrides(overrides)
+        except MillFileError as exc:
+            raise _set_error(exc, sets) from None
     return mill
+
+
+def _set_error(exc: MillFileError, items: list[str]) -> MillFileError:
+    """The error of an override, naming the ``--set`` option(s) that caused it."""
+    key = exc.key or ""
+    own = [s for s in items if s.split("=", 1)[0].strip() == key]  # unknown id or key
+    if not own and "." in key:  # revalidation: 'element[C46].gap' <- --set C46.gap=...
+        table_id, _, name = key.rpartition(".")
+        ident = table_id[table_id.find("[") + 1:-1] if table_id.endswith("]") else table_id
+        own = [s for s in items if s.split("=", 1)[0].strip() == f"{ident}.{name}"] or \
+            [s for s in items if s.split(".", 1)[0].strip() == ident]
+    shown = " ".join(f"--set {s}" for s in (own or items))
+    same = any(s.split("=", 1)[0].strip() == key for s in own)
+    err = MillFileError(f"{shown}: {exc.reason}" if same or not key else
+                        f"{shown}: {key}: {exc.reason}")
+    err.key = key or None  # kept for callers; the message names --set, not the mill file
+    return err
 
 
 def parse_sets(items: list[str]) -> dict[str, Any]:
     """Parse ``ID.KEY=VALUE`` strings; values are numbers where they parse as such."""
     out: dict[str, Any] = {}
     for item in items:
-        if "=" not in item:
-            raise MillFileError(f"--set expects ID.KEY=VALUE. Got {item!r}", key=item)
-        k, v = item.split("=", 1)
+        k, eq, v = item.partition("=")
+        if not eq or "." not in k or not k.split(".", 1)[1].strip():
+            err = MillFileError(f"--set {item}: expected ID.KEY=VALUE, e.g. C46.gap=0.006")
+            err.key = k.strip() or None
+            raise err
         try:
             val: Any = float(v)
         except ValueError:
-            val = v
+            val = v.strip()
         out[k.strip()] = val
     return out
+
+
+#: What each command needs a mapped channel for, by quantity: "... needs it {purpose}".
+_NEEDS = {
+    "fit": {"torque": "to compare the model's torque at element {id} with the measured one"},
+    "discrepancy": {"torque": "to compare model and measured torque at element {id}"},
+    "diagnose": {"torque": "for the natural-frequency amplitudes and phases at element {id}",
+                 "acceleration": "for the wear state of bearing {id}"},
+}
+
+
+def require_channels(rec: Recording, mill: Mill, command: str, *,
+                     bearings: Iterable[str] | None = None) -> None:
+    """Refuse a recording that lacks a mapped channel ``command`` needs.
+
+    ``fit`` and ``discrepancy`` need every torque channel of the mill file (the model's
+    torque at each measured element is compared with it); ``diagnose`` needs those and
+    the accelerometers of ``bearings`` (default: every bearing of the mill file).  The
+    reader only notes such a channel as missing (``segment`` goes on without it).
+
+    Raises
+    ------
+    RecordingError
+        Naming the file, the (first) missing channel and what the command needs it for.
+    """
+    needs = _NEEDS[command]
+    wanted = None if bearings is None else set(bearings)
+    present = set(rec.channels)
+    missing = []
+    for ch in mill.channels:
+        q = ch.quantity.value
+        if q not in needs or ch.name in present:
+            continue
+        ref = ch.element if q == "torque" else ch.bearing
+        if q == "acceleration" and wanted is not None and ref not in wanted:
+            continue
+        missing.append((ch, ref))
+    if not missing:
+        return
+    ch, ref = missing[0]
+    where = "element" if ch.quantity.value == "torque" else "bearing"
+    more = (f" (nor {', '.join(repr(c.name) for c, _ in missing[1:])})" if len(missing) > 1
+            else "")
+    raise RecordingError(
+        f"missing channel: the mill file maps {ch.quantity.value} channel '{ch.name}' "
+        f"({where} {ref}) but the recording lacks it{more}; 'ident {command}' needs it "
+        f"{needs[ch.quantity.value].format(id=ref)}", path=rec.path, channel=ch.name)
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -74,13 +151,10 @@ def write_json(data: Any, out: str | None) -> None:
     if out is None:
         sys.stdout.write(text + "\n")
         return
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    f = AtomicFile(out, "w")  # honours the umask (mkstemp alone gives 0600)
     try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text + "\n")
-        os.replace(tmp, path)
+        f.fh.write(text + "\n")
+        f.commit()
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        f.abort()
         raise

@@ -19,7 +19,7 @@ from ..diagnose import (Diagnosis, DiagnosticModel, diagnose_features, load_mode
                         model_cache_path)
 from ..errors import IdentError, ModelArtifactError
 from ..features import feature_summary, recording_features, transient_features
-from .common import add_common, load_mill_arg, write_json
+from .common import add_common, load_mill_arg, require_channels, write_json
 from .train import DEFAULT_SAMPLES, train_and_save
 
 
@@ -40,9 +40,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="worker processes when a model has to be trained first")
 
 
-def _model(args: argparse.Namespace, mill: Any) -> tuple[DiagnosticModel, str]:
-    if args.model:
-        return load_model(args.model, mill), str(args.model)
+def _cached_model(args: argparse.Namespace, mill: Any) -> tuple[DiagnosticModel, str]:
+    """The mill's cached model, trained first when there is none (or it is unusable)."""
     path = model_cache_path(mill)
     if path.exists():
         try:
@@ -91,12 +90,18 @@ def run(args: argparse.Namespace) -> int:
 
     mill = load_mill_arg(args)
     rec_path = Path(args.recording)
-    rec = read_recording(rec_path, mill)
+    rec = read_recording(rec_path, mill, warn=False)  # findings go into the JSON's warnings
+    # a given model is loaded (cheap) before anything else; without one, the mill's model
+    # (cached, or trained below) diagnoses every bearing
+    given = load_model(args.model, mill) if args.model else None
+    require_channels(rec, mill, "diagnose",
+                     bearings=None if given is None else given.bearing_ids)
     segments = segment_transients(rec, mill)
     if not segments:
         raise IdentError(f"{rec_path}: no load-step transient (bite or release) found; "
                          f"diagnosis needs at least one bar")
-    model, model_path = _model(args, mill)
+    model, model_path = (given, str(args.model)) if given is not None else \
+        _cached_model(args, mill)
     tf = transient_features(rec, mill, [s.t_step for s in segments], options=model.options)
     if len(tf.table) == 0:
         raise IdentError(f"{rec_path}: the load steps found are too close together or too "

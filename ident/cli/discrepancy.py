@@ -18,7 +18,7 @@ from pathlib import Path
 from ..discrepancy import DecisionRule, discrepancy
 from ..discrepancy.plots import save_plots
 from ..io.readers import read_recording
-from .common import add_common, load_mill_arg, write_json
+from .common import add_common, load_mill_arg, require_channels, write_json
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 < args.min_improvement < 1.0:
         raise IdentError(f"--min-improvement must lie in (0, 1). Got {args.min_improvement}.")
     rec = read_recording(args.recording, mill, warn=False)
+    require_channels(rec, mill, "discrepancy")
 
     def say(line: str) -> None:
         if not args.quiet:

@@ -38,7 +38,7 @@ from ..errors import ConvergenceWarning, FitError
 from ..fit import Collocation, SingleShooting, fit_gaps, windows_from_recording
 from ..io.readers import read_recording
 from ..segment import segment_transients
-from .common import add_common, load_mill_arg, parse_sets, write_json
+from .common import add_common, load_mill_arg, parse_sets, require_channels, write_json
 
 #: --held choices -> fit_gaps(direct=...)
 HELD = {"auto": "auto", "always": True, "never": False}
@@ -162,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
                 if k.endswith(".gap") and isinstance(v, float)}  # --set wins
         starts = [{**start_from_fit(args.start_from, mill.name, mill.element_ids), **over}]
     rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
+    require_channels(rec, mill, "fit")  # every torque channel: before the fit says less
     segments = segment_transients(rec, mill)
     if not segments:
         raise FitError(f"{args.recording}: no load-step transient found; a fit needs at "

@@ -10,7 +10,8 @@ MCAP layout: one topic per device (the device's ``name``), messages are
 ``ident.SampleBlock`` blocks in ``protobuf`` (default) or ``json`` encoding, each
 message's ``log_time`` = ``publish_time`` = the time of its first sample; optional
 ``ident.recording`` metadata and a ``mill.toml`` attachment.  Chunks are compressed
-with lz4 (zstd if lz4 is missing, none if both are).
+with lz4 (zstd if lz4 is missing, none if both are).  The file gets the mode a plain
+``open`` would give it (``0o666 & ~umask``), not the temporary file's ``0o600``.
 
 CSV layout: one sample rate per file, so one file per device.  The first device goes
 to the given path ``name.csv``; every further device to a sibling
@@ -39,7 +40,7 @@ from .sampleblock import (SCHEMA_NAME, encode_json, encode_protobuf, json_schema
                           protobuf_schema)
 
 __all__ = ["write_recording", "McapRecordingWriter", "CsvDeviceWriter", "csv_sibling_path",
-           "DEFAULT_BLOCK_S"]
+           "AtomicFile", "new_file_mode", "DEFAULT_BLOCK_S"]
 
 #: Default block length of MCAP sample blocks, s.
 DEFAULT_BLOCK_S = 0.1
@@ -48,15 +49,43 @@ _BAD_NAME = re.compile(r'[,;"\[\]\n\r]')
 
 
 # ---- atomic files ------------------------------------------------------------------------
-class _AtomicFile:
-    """A temporary file beside ``path``, renamed onto it by :meth:`commit`."""
+def new_file_mode() -> int:
+    """``0o666 & ~umask``: the permissions ``open(path, "w")`` gives a new file.
 
-    def __init__(self, path: Path, mode: str = "wb") -> None:
-        self.path = path
+    The umask is read from ``/proc/self/status`` where there is one (setting it to read
+    it back would race with other threads creating files); elsewhere by ``os.umask``.
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+class AtomicFile:
+    """A temporary file beside ``path``, renamed onto it by :meth:`commit`.
+
+    ``tempfile.mkstemp`` creates it ``0o600``; it is given :func:`new_file_mode` at
+    once, so the final file honours the umask as a plain ``open`` would.
+    """
+
+    def __init__(self, path: str | Path, mode: str = "wb") -> None:
+        self.path = path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         self.tmp = Path(tmp)
-        self.fh: IO = os.fdopen(fd, mode)
+        try:
+            os.fchmod(fd, new_file_mode())
+            self.fh: IO = os.fdopen(fd, mode)
+        except BaseException:
+            os.close(fd)
+            self.tmp.unlink(missing_ok=True)
+            raise
 
     def commit(self) -> None:
         self.fh.close()
@@ -156,7 +185,7 @@ class McapRecordingWriter:
                                  path=str(path))
         self._encoding = encoding
         self._encode = encode_protobuf if encoding == "protobuf" else encode_json
-        self._file = _AtomicFile(self.path)
+        self._file = AtomicFile(self.path)
         try:
             self._w = Writer(self._file.fh, chunk_size=chunk_size, compression=_compression())
             self._w.start(profile="", library="ident")
@@ -282,7 +311,7 @@ class CsvDeviceWriter:
         self.rate_hz = float(rate_hz)
         self.origin_ns = int(origin_ns)
         self.time_format = time_format
-        self._file = _AtomicFile(self.path)
+        self._file = AtomicFile(self.path)
         header = ",".join(["time"] + [f"{c} [{u}]" if u else c
                                       for c, u in zip(self.channels, units)])
         self._file.fh.write((header + "\n").encode())
