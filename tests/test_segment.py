@@ -196,3 +196,17 @@ def test_load_fractions_with_a_closed_loop(mill):
     f_weak = load_fractions(dataclasses.replace(mill, elements=mill.elements + (weak,)))
     tree = load_fractions(mill)
     assert {k: f_weak[k] for k in tree} == pytest.approx(tree, abs=1e-6)
+
+
+def test_lowest_mode_is_the_linear_baselines(mill, repo_root):
+    """segment may not import model: its own eigenproblem must agree with natural_modes."""
+    from ident import load_mill
+    from ident.model.linear import natural_modes
+    from ident.segment.timescales import lowest_mode
+
+    for m in (mill, load_mill(repo_root / "data" / "mills" / "cold-s5.toml")):
+        ref = natural_modes(m)
+        got = lowest_mode(m)
+        assert got.freq_hz == pytest.approx(ref.frequencies_hz[0], rel=1e-9)
+        assert got.damping_ratio == pytest.approx(ref.damping_ratios[0], rel=1e-9)
+    assert lowest_mode(mill).freq_hz == pytest.approx(12.0, abs=0.1)  # seed Fig. 2
