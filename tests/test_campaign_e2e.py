@@ -43,7 +43,7 @@ def test_good_stored_bad_failed(sample, stored):
     for name, err in failed.items():
         assert err.startswith("read: ") and name.split("/")[1] in err
     assert "missing channel" in failed["incoming/unknown_channels.csv"]
-    assert "not an MCAP file" in failed["incoming/empty.mcap"]
+    assert "the file is empty (0 bytes)" in failed["incoming/empty.mcap"]
     rec = load_results(url)["recordings"].set_index("file_name")
     assert (rec.loc[[p.relative_to(sample.folder).as_posix() for p in sample.good],
                     "status"] == "done").all()
