@@ -1,0 +1,147 @@
+"""One wear verdict per element and bearing: the fit's identified gap first, the trained model otherwise."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from ident.diagnose import (Diagnosis, TargetDiagnosis, diagnosis_json, fit_verdicts,
+                            state_probabilities, verdicts)
+
+
+def _td(state: str, size: float, *, p: float = 0.8, uncertain: bool = False) -> TargetDiagnosis:
+    probs = {"good": 0.1, "worn": 0.1, "critical": 0.1}
+    probs[state] = p
+    tot = sum(probs.values())
+    probs = {k: v / tot for k, v in probs.items()}
+    return TargetDiagnosis(state=state, probability=probs[state], probabilities=probs,
+                           size=size, interval=(size * 0.8, size * 1.2), observable=True,
+                           uncertain=uncertain, novelty=0.5)
+
+
+def _diagnosis(mill, element_state: str = "good", bearing_state: str = "worn") -> Diagnosis:
+    return Diagnosis(elements={e.id: _td(element_state, 0.002) for e in mill.elements},
+                     bearings={b.id: _td(bearing_state, 1.2e-3) for b in mill.bearings},
+                     warnings=("out of range",))
+
+
+def _fit(mill, **identified: tuple[float, float, float]) -> dict:
+    """A cli.md fit JSON: the named elements identified at (gap, lo, hi), the rest not."""
+    els = {}
+    for e in mill.elements:
+        if e.id in identified:
+            g, lo, hi = identified[e.id]
+            els[e.id] = {"gap": g, "gap_ci95": [lo, hi], "identified": True}
+        else:
+            els[e.id] = {"gap": 0.0123, "gap_ci95": [0.0, 0.02], "identified": False,
+                         "reason": "interval wider than the gap"}
+    return {"mill": mill.name, "elements": els}
+
+
+# ---- state probabilities from an interval -------------------------------------------
+def test_symmetric_interval_is_a_normal():
+    # gap 5 mrad, 95 % half-width 1.96 mrad -> sigma 1 mrad; limits 4 and 8 mrad
+    p = state_probabilities(5e-3, (5e-3 - 1.96e-3, 5e-3 + 1.96e-3), (4e-3, 8e-3))
+    assert p["good"] == pytest.approx(stats.norm.cdf(-1.0), abs=1e-4)
+    assert p["critical"] == pytest.approx(stats.norm.sf(3.0), abs=1e-5)
+    assert sum(p.values()) == pytest.approx(1.0)
+
+
+def test_split_normal_mass_matches_sampling():
+    """Each side of the interval is its own half normal, weighted so the density is continuous."""
+    value, lo, hi = 6e-3, 5e-3, 9e-3
+    s_lo, s_hi = (value - lo) / 1.959964, (hi - value) / 1.959964
+    rng = np.random.default_rng(0)
+    n = 400_000
+    side = rng.random(n) < s_lo / (s_lo + s_hi)
+    x = np.where(side, value - np.abs(rng.normal(0, s_lo, n)), value + np.abs(rng.normal(0, s_hi, n)))
+    p = state_probabilities(value, (lo, hi), (4e-3, 8e-3))
+    assert p["good"] == pytest.approx(np.mean(x <= 4e-3), abs=3e-3)
+    assert p["critical"] == pytest.approx(np.mean(x > 8e-3), abs=3e-3)
+    # the interval really is a 95 % one of that distribution
+    assert np.mean((x >= lo) & (x <= hi)) == pytest.approx(0.95, abs=3e-3)
+
+
+def test_zero_width_and_missing_interval_is_certain():
+    assert state_probabilities(9e-3, (9e-3, 9e-3), (4e-3, 8e-3))["critical"] == 1.0
+    assert state_probabilities(2e-3, (math.nan, math.nan), (4e-3, 8e-3))["good"] == 1.0
+    # an estimate a rounding error outside its own interval counts as zero width there
+    p = state_probabilities(5e-3, (5.0001e-3, 7e-3), (4e-3, 8e-3))
+    assert p["good"] == 0.0 and p["worn"] > 0.9
+
+
+# ---- where a verdict comes from -------------------------------------------------------
+def test_identified_gap_decides_over_the_model(mill):
+    fit = _fit(mill, C46=(9.0e-3, 8.7e-3, 9.3e-3), C12=(2.0e-3, 1.8e-3, 2.2e-3))
+    els, brs = verdicts(mill, _diagnosis(mill, "good"), fit=fit)
+    assert list(els) == [e.id for e in mill.elements]  # the mill file's order
+    assert els["C46"].state == "critical" and els["C46"].source == "fit"
+    assert els["C46"].probability > 0.99 and not els["C46"].uncertain
+    assert els["C46"].value == 9.0e-3 and els["C46"].ci95 == (8.7e-3, 9.3e-3)
+    assert els["C46"].diagnosis is not None and els["C46"].diagnosis.state == "good"
+    assert els["C12"].state == "good" and els["C12"].source == "fit"
+    # not identified: the model's state, with the fit's reason
+    assert els["C23"].source == "diagnosis" and els["C23"].state == "good"
+    assert els["C23"].reason == "interval wider than the gap"
+    assert els["C23"].value == 0.002
+    # bearings always from the diagnosis (accelerometers)
+    assert set(brs) == {b.id for b in mill.bearings}
+    assert all(v.source == "diagnosis" and v.state == "worn" for v in brs.values())
+
+
+def test_fit_alone_gives_verdicts_only_where_it_identified(mill):
+    fit = _fit(mill, C46=(5e-3, 4.5e-3, 5.5e-3))
+    els, brs = verdicts(mill, None, fit=fit)
+    assert set(els) == {"C46"} and els["C46"].state == "worn" and brs == {}
+    assert set(fit_verdicts(mill, fit)) == {"C46"}
+    assert verdicts(mill, None, fit=None) == ({}, {})
+    # an identified flag without a finite gap is no evidence
+    bad = _fit(mill)
+    bad["elements"]["C46"] = {"gap": None, "identified": True}
+    assert fit_verdicts(mill, bad) == {}
+
+
+def test_model_alone(mill):
+    els, brs = verdicts(mill, _diagnosis(mill, "worn"))
+    assert all(v.source == "diagnosis" and v.state == "worn" and v.reason == ""
+               for v in els.values())
+    assert len(brs) == len(mill.bearings)
+
+
+def test_uncertain_follows_the_diagnosis_or_the_probability(mill):
+    d = _diagnosis(mill)
+    d.elements["C23"] = _td("good", 0.002, p=0.9, uncertain=True)
+    # a gap at the worn limit with a wide interval: about even odds
+    fit = _fit(mill, C46=(4.0e-3, 2.0e-3, 6.0e-3))
+    els, _ = verdicts(mill, d, fit=fit)
+    assert els["C23"].uncertain
+    assert els["C46"].uncertain and els["C46"].probability < 0.6
+
+
+# ---- the diagnose JSON -----------------------------------------------------------------
+def test_diagnosis_json_blocks(mill):
+    fit = _fit(mill, C46=(9.0e-3, 8.7e-3, 9.3e-3))
+    out = diagnosis_json(mill, _diagnosis(mill), fit=fit, features={"frequencies_hz": [12.0]},
+                         warnings=("w2",))
+    c46 = out["elements"]["C46"]
+    assert c46["state"] == "critical" and c46["source"] == "fit" and c46["identified"]
+    assert c46["gap"] == 9.0e-3 and c46["gap_ci95"] == [8.7e-3, 9.3e-3]
+    assert c46["gap_mm"] == pytest.approx(mill.element("C46").gap_mm(9.0e-3))
+    assert c46["diagnosis"]["state"] == "good"  # what the model said, for comparison
+    c23 = out["elements"]["C23"]
+    assert c23["source"] == "diagnosis" and c23["reason"] == "interval wider than the gap"
+    assert {"novelty", "explanations", "probabilities", "observable"} <= set(c23)
+    b = out["bearings"]["B23"]
+    assert b["state"] == "worn" and b["source"] == "diagnosis"
+    assert b["clearance"] == 1.2e-3 and b["clearance_mm"] == pytest.approx(1.2)
+    assert out["features"] == {"frequencies_hz": [12.0]}
+    assert out["warnings"] == ["out of range", "w2"]
+
+
+def test_diagnosis_json_of_the_fit_alone(mill):
+    out = diagnosis_json(mill, None, fit=_fit(mill, C46=(3e-3, 2.8e-3, 3.2e-3)))
+    assert list(out["elements"]) == ["C46"] and out["bearings"] == {}
+    assert out["elements"]["C46"]["state"] == "good" and out["warnings"] == []
