@@ -53,8 +53,53 @@ def test_schema_version_mismatch(tmp_path):
     open_store(url).close()
     with sa.create_engine(url).begin() as c:
         c.execute(S.schema_info.update().values(value="999"))
-    with pytest.raises(StoreError, match="schema version 999; this ident reads version 1"):
+    with pytest.raises(StoreError, match="schema version 999; this ident reads version 2"):
         open_store(url)
+
+
+def test_a_schema_1_store_is_migrated_keeping_its_rows(tmp_path, mill, outcome):
+    """Schema 1 had no verdict columns in ``diagnoses``: they are added, every row kept."""
+    db = tmp_path / "old.db"
+    with open_store(f"sqlite:///{db}") as st:
+        assert _write(st, mill, outcome)
+        n_diag = st.count("diagnoses")
+    con = sqlite3.connect(db)
+    for col in ("source", "value_ci_lo", "value_ci_hi", "uncertain", "reason"):
+        con.execute(f"ALTER TABLE diagnoses DROP COLUMN {col}")
+    con.execute("UPDATE schema_info SET value = '1' WHERE key = 'schema_version'")
+    con.commit()
+    con.close()
+    with open_store(f"sqlite:///{db}") as st:
+        assert st.count("diagnoses") == n_diag > 0 and st.count("recordings") == 1
+        assert _write(st, mill, outcome, sha="b" * 64)  # new rows fill the new columns
+    with sa.create_engine(f"sqlite:///{db}").connect() as c:
+        assert c.execute(sa.select(S.schema_info.c.value)).scalar() == "2"
+        cols = {r[1] for r in c.execute(sa.text("PRAGMA table_info(diagnoses)"))}
+    assert {"source", "value_ci_lo", "reason"} <= cols
+    d = load_results(f"sqlite:///{db}", latest_only=False)["diagnoses"]
+    old, new = d[d["source"].isna()], d[d["source"].notna()]
+    assert len(old) == len(new) == n_diag  # the old rows: no source (schema 1)
+    open_store(f"sqlite:///{db}").close()  # a second open finds nothing to migrate
+
+
+def test_verdict_rows(mill):
+    from ident.store.store import _verdict_rows
+
+    diag = {"elements": {"C46": {"state": "critical", "probability": 0.97, "gap": 9e-3,
+                                 "gap_ci95": [8.7e-3, 9.3e-3], "source": "fit",
+                                 "uncertain": False},
+                         "C23": {"state": "good", "probability": 0.7, "gap": 2e-3,
+                                 "reason": "interval wider than the gap"}},
+            "bearings": {"B23": {"state": "worn", "probability": 0.8, "clearance": 1.2e-3,
+                                 "clearance_ci95": [1.0e-3, 1.4e-3], "uncertain": True}}}
+    rows = {r["target"]: r for r in _verdict_rows(diag)}
+    assert rows["C46"]["source"] == "fit" and rows["C46"]["value_ci_hi"] == 9.3e-3
+    assert rows["C46"]["clearance"] is None and rows["C46"]["uncertain"] is False
+    assert rows["C23"]["source"] == "diagnosis"  # a JSON without a source came from the model
+    assert rows["C23"]["reason"] == "interval wider than the gap"
+    assert rows["C23"]["value_ci_lo"] is None and rows["C23"]["uncertain"] is None
+    assert rows["B23"]["kind"] == "bearing" and rows["B23"]["gap"] is None
+    assert rows["B23"]["clearance"] == 1.2e-3 and rows["B23"]["value_ci_lo"] == 1.0e-3
 
 
 def test_roundtrip_every_table(tmp_path, mill, outcome):

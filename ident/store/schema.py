@@ -10,7 +10,11 @@ without the file.
 
 Keys: a recording is identified by ``(file_name, content_sha256, settings_hash)``
 (unique): its path relative to the campaign folder, the SHA-256 of its bytes and
-the hash of the processing settings together with the mill description.  A
+the hash of the processing settings together with the mill description.
+
+``diagnoses`` holds one wear verdict per element and bearing of a recording
+(:mod:`ident.diagnose.verdict`): the state, its probability and its ``source``,
+``fit`` (the fit identified the gap) or ``diagnosis`` (the trained model).  A
 transient-level row carries ``transient_idx`` (the index of the transient in the
 recording, 0-based); ``NULL`` there means the row describes the whole recording
 (e.g. one fit over all its transients).
@@ -30,9 +34,10 @@ __all__ = ["SCHEMA_VERSION", "metadata", "schema_info", "mills", "runs", "record
            "transients", "taf", "fits", "element_results", "diagnoses", "features",
            "quality_issues", "CHILD_TABLES"]
 
-#: Bumped whenever a table changes incompatibly; :func:`ident.store.open_store` refuses
-#: a store written with another version.
-SCHEMA_VERSION = 1
+#: Bumped whenever a table changes; :func:`ident.store.open_store` migrates a store of an
+#: older version (adding the new columns, every row kept) and refuses a newer one.
+#: 1: the first; 2: ``diagnoses`` holds the wear verdict (``source``, interval, reason).
+SCHEMA_VERSION = 2
 
 metadata = MetaData()
 
@@ -163,6 +168,12 @@ diagnoses = _child(
     Column("probability", Float),
     Column("gap", Float, comment="rad reduced (elements)"),
     Column("clearance", Float, comment="m (bearings)"),
+    # schema 2: the verdict (ident.diagnose.verdict); NULL source in rows of schema 1
+    Column("source", String(16), comment="fit | diagnosis: where the state comes from"),
+    Column("value_ci_lo", Float, comment="95 % interval of gap (rad) or clearance (m)"),
+    Column("value_ci_hi", Float),
+    Column("uncertain", Boolean),
+    Column("reason", Text, comment="why an element's verdict is not the fit's"),
 )
 
 features = _child(

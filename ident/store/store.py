@@ -194,9 +194,40 @@ class Store:
             if row is None:
                 conn.execute(S.schema_info.insert().values(key="schema_version",
                                                            value=str(S.SCHEMA_VERSION)))
-            elif row[0] != str(S.SCHEMA_VERSION):
+                return
+            try:
+                version = int(row[0])
+            except ValueError:
+                version = -1
+            if version > S.SCHEMA_VERSION or version < 1:
                 raise StoreError(f"{self.url} holds schema version {row[0]}; this ident "
-                                 f"reads version {S.SCHEMA_VERSION}")
+                                 f"reads version {S.SCHEMA_VERSION} (and migrates older ones)")
+            if version < S.SCHEMA_VERSION:
+                self._migrate(conn, version)
+
+    def _migrate(self, conn: Connection, version: int) -> None:
+        """Bring a store of an older schema version up to :data:`~ident.store.schema.SCHEMA_VERSION`.
+
+        Every version so far only added tables and nullable columns (or columns with
+        a default): the missing ones are added, every row is kept, and the version is
+        written last.  Each step is idempotent, so a migration interrupted half-way
+        is finished by the next :func:`open_store`.
+        """
+        S.metadata.create_all(conn)  # tables new since that version
+        insp = sa.inspect(conn)
+        preparer = conn.dialect.identifier_preparer
+        for table in S.metadata.sorted_tables:
+            have = {c["name"] for c in insp.get_columns(table.name)}
+            for col in table.columns:
+                if col.name in have:
+                    continue
+                ddl = (f"ALTER TABLE {preparer.format_table(table)} ADD COLUMN "
+                       f"{preparer.format_column(col)} {col.type.compile(dialect=conn.dialect)}")
+                if col.server_default is not None:
+                    ddl += f" DEFAULT {col.server_default.arg.text}"
+                conn.execute(sa.text(ddl))
+        conn.execute(S.schema_info.update().where(S.schema_info.c.key == "schema_version")
+                     .values(value=str(S.SCHEMA_VERSION)))
 
     # ---- reading ------------------------------------------------------------------
     def stored_keys(self, settings_hash: str) -> dict[tuple[str, str], str]:
@@ -363,6 +394,26 @@ def _fit_rows(fit: Mapping[str, Any], tidx: int | None) -> tuple[dict, list[dict
     return frow, erows
 
 
+def _verdict_rows(diagnosis: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``diagnoses`` rows of a cli.md ``diagnose`` JSON: one verdict per element and bearing."""
+    rows = []
+    for kind, key, size in (("element", "elements", "gap"), ("bearing", "bearings", "clearance")):
+        for tid, v in (diagnosis.get(key) or {}).items():
+            ci = v.get(f"{size}_ci95") or [None, None]
+            uncertain = v.get("uncertain")
+            rows.append({
+                "transient_idx": None, "kind": kind, "target": str(tid), "state": v.get("state"),
+                "probability": _num(v.get("probability")),
+                "gap": _num(v.get("gap")) if kind == "element" else None,
+                "clearance": _num(v.get("clearance")) if kind == "bearing" else None,
+                # a diagnose JSON without a source (older ident) came from the model
+                "source": str(v.get("source") or "diagnosis"),
+                "value_ci_lo": _num(ci[0]), "value_ci_hi": _num(ci[1]),
+                "uncertain": None if uncertain is None else bool(uncertain),
+                "reason": v.get("reason") or None})
+    return rows
+
+
 def outcome_rows(o: RecordingOutcome) -> dict[str, list[dict[str, Any]]]:
     """The child-table rows of an outcome, keyed by table name (without ``recording_pk``).
 
@@ -391,16 +442,7 @@ def outcome_rows(o: RecordingOutcome) -> dict[str, list[dict[str, Any]]]:
         out["element_results"].extend(erows)
     if o.diagnosis:
         d = o.diagnosis
-        for eid, e in (d.get("elements") or {}).items():
-            out["diagnoses"].append({
-                "transient_idx": None, "kind": "element", "target": str(eid),
-                "state": e.get("state"), "probability": _num(e.get("probability")),
-                "gap": _num(e.get("gap")), "clearance": None})
-        for bid, b in (d.get("bearings") or {}).items():
-            out["diagnoses"].append({
-                "transient_idx": None, "kind": "bearing", "target": str(bid),
-                "state": b.get("state"), "probability": _num(b.get("probability")),
-                "gap": None, "clearance": _num(b.get("clearance"))})
+        out["diagnoses"].extend(_verdict_rows(d))
         for name, values in (d.get("features") or {}).items():
             if isinstance(values, (list, tuple)):
                 for j, v in enumerate(values):
