@@ -138,9 +138,10 @@ def model_path(mill: Mill, settings: Settings) -> Path | None:
     return p if p.is_file() else None
 
 
-def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> dict[str, Any]:
-    """cli.md ``diagnose`` JSON of one recording (features -> trained model)."""
-    from ..diagnose import diagnose_features, load_model
+def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
+              fit: Mapping[str, Any] | None) -> dict[str, Any]:
+    """cli.md ``diagnose`` JSON of one recording: the verdicts of its fit and the model."""
+    from ..diagnose import diagnosis_json, diagnose_features, load_model
     from ..features import feature_summary, recording_features, transient_features
 
     model = load_model(model_file, mill)
@@ -149,14 +150,7 @@ def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> dict[str, 
         raise IdentError("the load steps found are too close together or too close to the "
                          "recording's ends to analyse")
     diag = diagnose_features(model, recording_features(tf), explain=False)
-
-    def block(d: Any, size_key: str) -> dict[str, Any]:
-        return {"state": d.state, "probability": d.probability, size_key: d.size,
-                f"{size_key}_ci95": list(d.interval), "uncertain": d.uncertain}
-
-    return {"elements": {k: block(v, "gap") for k, v in diag.elements.items()},
-            "bearings": {k: block(v, "clearance") for k, v in diag.bearings.items()},
-            "features": feature_summary(tf), "warnings": list(diag.warnings)}
+    return diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf))
 
 
 def _finding(stage: str, kind: str, message: str) -> dict[str, Any]:
@@ -285,7 +279,11 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
 
         if settings.diagnose and "diagnose" in stages and model_file is not None:
             parts["diagnosis"] = jsonable(stage("diagnose", lambda: _diagnose(
-                rec, mill, segs, model_file)))
+                rec, mill, segs, model_file, parts["fit"])))
+        elif parts["fit"] is not None and "diagnose" in stages:
+            from ..diagnose import diagnosis_json  # the verdicts of the fit alone
+
+            parts["diagnosis"] = jsonable(diagnosis_json(mill, None, fit=parts["fit"]))
     except _Failed as f:
         status, failed_stage = "failed", f.stage
         error, kind = describe_error(f.stage, f.exc), type(f.exc).__name__
