@@ -8,7 +8,8 @@ turns into dicts of the documented cli.md shapes; any file that is not such JSON
 is refused with a :class:`~ident.errors.RecordingError`, as the real reader
 refuses a malformed file.  Extra keys trigger the failure modes under test:
 ``crash`` (the worker process dies), ``sleep_s``, ``alloc_mb``, ``fail_stage``,
-``no_fit`` (no fit stored, as with ``--no-fit``).
+``no_fit`` (no fit stored, as with ``--no-fit``), ``identified`` (the elements whose
+gap the fit identifies; default C46, C57, C12).
 
 The real pipeline is tested end to end in ``tests/test_campaign_e2e.py``.
 """
@@ -103,7 +104,7 @@ def double_process(path: Path, mill: Mill, settings: Settings) -> RecordingOutco
         g = float(doc["gaps"].get(e.id, e.gap)) + float(rng.normal(0, 1e-4))
         elements[e.id] = {"gap": g, "gap_ci95": [g - 3e-4, g + 3e-4], "gap_open": 0.0,
                           "gap_mm": e.gap_mm(g), "params": {"a0": 1.0e7, "sigma": 900.0},
-                          "identifiable": e.id in ("C46", "C57", "C12")}
+                          "identifiable": e.id in doc.get("identified", ("C46", "C57", "C12"))}
     fit = {"mill": mill.name, "family": settings.family or "g3", "elements": elements,
            "metrics": {"nrmse": float(rng.uniform(0.03, 0.06)), "nrmse_linear": 0.23},
            "solver": {"status": "Solve_Succeeded", "iterations": 57, "seconds": 0.01}}

@@ -211,6 +211,152 @@ def test_headline_never_calls_unknown_states_good(statuses, says):
     from ident.report.html import _headline
 
     sec = SimpleNamespace(assessments=[SimpleNamespace(status=st, id=f"E{i}", label="x",
-                                                       reason="r")
+                                                       reason="r", kind="element",
+                                                       n_rejected=0, n_identified=1)
                                        for i, st in enumerate(statuses)], tables={})
     assert says in _headline(sec)
+
+
+# ---- the status JSON (report --json) --------------------------------------------------
+_NOW = __import__("datetime").datetime(2026, 2, 20, 6, 0, tzinfo=__import__("datetime").timezone.utc)
+
+
+def test_status_json_per_part(store, mill, tmp_path):
+    """The double store: C46 from 2 to 4.4 mrad over 40 days (6e-5 rad/day) from 1 Jan 2026."""
+    import datetime as dt
+    import json
+
+    r = build_report(store, tmp_path / "r.html", json_out=tmp_path / "s.json", now=_NOW)
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc == json.loads(json.dumps(r.status)) and doc["generated"] == "2026-02-20T06:00:00Z"
+    m = doc["mills"]["hsm-f1"]
+    assert m["last_recording"].startswith("2026-02-10") and m["n_recordings"] == 10
+    assert m["n_failed"] == 2 and m["data_age_days"] == pytest.approx(10.25, abs=0.01)
+    assert m["stale"] is False
+    assert set(m["elements"]) == {e.id for e in mill.elements}
+    assert set(m["bearings"]) == {b.id for b in mill.bearings}
+    c46 = m["elements"]["C46"]
+    assert c46["status"] == "worn" and c46["source"] == "fit"
+    # SI: rad, the truth at the last recording inside the 95 % band
+    lo, hi = c46["now_ci95"]
+    assert lo <= 0.002 + 6e-5 * 40 <= hi and lo < c46["now"] < hi
+    assert c46["worn_limit"] == 0.004 and c46["critical_limit"] == 0.008
+    assert c46["worn_reached"] and not c46["critical_reached"]
+    # the worn limit was crossed around day 33 (3 Feb); the critical one is due at day 100
+    worn_at = dt.date.fromisoformat(c46["worn_at"])
+    assert abs((worn_at - dt.date(2026, 2, 3)).days) <= 4
+    lo, hi = (dt.date.fromisoformat(x) for x in c46["critical_at_ci95"])
+    assert lo <= dt.date(2026, 4, 11) <= hi
+    assert c46["next_limit"] == "critical"
+    true_left = (dt.date(2026, 4, 11) - _NOW.date()).days - 0.25  # 49.75 days
+    d_lo, d_hi = c46["days_left_ci95"]
+    assert d_lo <= true_left <= (d_hi if d_hi is not None else math.inf)
+    assert c46["days_left"] == pytest.approx(true_left, rel=0.35)
+    assert c46["n_identified"] == 10 and c46["n_rejected"] == 0 and c46["n_recordings"] == 10
+    assert c46["last_recording"] == "2026-02-10"
+    # C23: every fit rejected, the verdicts (the double's diagnosis) decide
+    c23 = m["elements"]["C23"]
+    assert c23["status"] == "good" and c23["source"] == "diagnosis"
+    assert c23["n_identified"] == 0 and c23["n_rejected"] == 10
+    assert m["bearings"]["B23"]["status"] == "good"
+    assert m["bearings"]["B23"]["source"] == "diagnosis"
+
+
+def test_stale_data_is_flagged(store, tmp_path):
+    import datetime as dt
+
+    r = build_report(store, tmp_path / "r.html", now=_NOW + dt.timedelta(days=30))
+    assert r.status["mills"]["hsm-f1"]["stale"] is True
+    assert "Stale data" in r.path.read_text()
+
+
+def test_rejected_fits_are_left_out_of_the_trend(tmp_path, mill):
+    """Every third fit of C46 is not identified and far off: the trend must not see it."""
+    for i in range(9):
+        rejected = i % 3 == 1  # the last recording (i = 8) is identified
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=5 * i, seed=i,
+                               gaps={"C46": 0.012 if rejected else 0.002 + 5e-5 * 5 * i},
+                               identified=["C12", "C57"] if rejected else ["C12", "C46", "C57"])
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    sec = analyse_mill("hsm-f1", load_results(url), figures=False)
+    c46 = next(x for x in sec.assessments if x.id == "C46")
+    f = mill.element("C46").gap_mm(1.0)
+    assert c46.n_identified == 6 and c46.n_rejected == 3 and c46.n == 6
+    assert c46.slope_per_30d == pytest.approx(30 * 5e-5 * f, rel=0.2)
+    assert c46.now / f == pytest.approx(0.002 + 5e-5 * 40, abs=3e-4)
+    assert c46.source == "fit" and c46.status != "critical"  # far below 8 mrad
+    r = build_report(url, tmp_path / "r.html", now=_NOW)
+    text = r.path.read_text()
+    # C23, C34, C45 are never identified (27) and C46 three times: the headline counts them
+    assert "30 of 54 element fits did not identify their gap" in text
+
+
+def test_unknown_only_without_evidence(tmp_path, mill):
+    """C23's fits are all rejected and no diagnosis is stored: unknown, the others are not."""
+    for i in range(3):
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=i, seed=i)
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    import sqlalchemy as sa
+
+    from ident.store import schema as S
+
+    with sa.create_engine(url).begin() as c:
+        c.execute(S.diagnoses.delete())
+    r = build_report(url, tmp_path / "r.html", now=_NOW)
+    els = r.status["mills"]["hsm-f1"]["elements"]
+    assert els["C23"]["status"] == "unknown" and els["C23"]["n_rejected"] == 3
+    assert els["C23"]["days_left"] is None
+    assert {els[e]["status"] for e in ("C12", "C46", "C57")} == {"good"}
+    assert r.status["mills"]["hsm-f1"]["bearings"]["B23"]["status"] == "unknown"
+
+
+def test_remaining_life_words():
+    from ident.report.html import life_words
+
+    assert life_words({"status": "unknown"}) == "not known: no evidence"
+    assert life_words({"status": "critical", "critical_reached": True,
+                       "critical_at": "2026-03-01"}).startswith("critical limit reached (2026-03-01)")
+    assert life_words({"status": "good", "next_limit": "worn", "days_left": None}) == \
+        "no rising trend: no date for the worn limit"
+    assert life_words({"status": "worn", "next_limit": "critical", "days_left": 23.4,
+                       "days_left_ci95": [12.0, None]}) == \
+        "about 23 days to the critical limit (95 %: 12 days to no end)"
+
+
+def test_report_cli_json(store, tmp_path):
+    import json
+
+    out = tmp_path / "st.json"
+    assert main(["report", "--store", store, "--out", str(tmp_path / "r.html"),
+                 "--json", str(out), "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["mills"]["hsm-f1"]["elements"]["C46"]["status"] == "worn"
+
+
+def test_plain_words_not_codes(store, tmp_path):
+    text = build_report(store, tmp_path / "r.html", now=_NOW).path.read_text()
+    assert "Solve_Succeeded" not in text and "converged" in text
+    assert "RecordingError" not in text and "bad recording" in text
+    assert "recording date (UTC)" not in text  # axis labels are inside the PNGs ...
+    from ident.report import figures as F
+
+    assert F.gap_trends  # ... and checked on the panels below
+
+
+def test_gap_panel_axis_labels_and_range():
+    from matplotlib.figure import Figure
+
+    from ident.report import figures as F
+
+    t = np.array([0.0, 5.0, 10.0])
+    y = np.array([1.0, 1.5, 2.0])
+    p = F.GapPanel(title="C46", unit="mm", t=t, y=y, lo=y - 0.1, hi=y + 0.1, worn=2.4,
+                   critical=4.8, trend=None, worn_at=None, critical_at=None, status="good",
+                   horizon=7.0, rejected_t=np.array([7.0]), rejected_y=np.array([30.0]),
+                   quantity="gap at r = 0.5 m")
+    lo, hi = F._y_range(p)
+    assert lo == 0.0 and 4.8 < hi <= 2 * 4.8  # both limits shown, a wild rejected fit capped
+    assert F._y_range(F.GapPanel(**{**p.__dict__, "y": np.array([1.0, 1.5, 7.0]),
+                                    "hi": np.array([1.1, 1.6, 7.5])}))[1] >= 7.5

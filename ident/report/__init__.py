@@ -4,6 +4,7 @@
                                  │
                                  ▼
                         figures (matplotlib Agg → PNG data URIs) ──► html.render
+                                 └──► status.status_json (report --json, SI, ISO dates)
 
 Per mill: a traffic-light summary per element and bearing, gap trends with worn
 and critical limits and a forecast (with its 95 % interval) of when each limit
@@ -13,7 +14,9 @@ data-quality summary and the recordings that failed.
 """
 
 from .build import Assessment, MillSection, ReportSummary, analyse_mill, build_report
+from .status import RemainingLife, remaining_life, status_json
 from .trend import Crossing, Trend, crossing, fit_trend
 
 __all__ = ["build_report", "analyse_mill", "ReportSummary", "MillSection", "Assessment",
-           "fit_trend", "crossing", "Trend", "Crossing"]
+           "fit_trend", "crossing", "Trend", "Crossing", "status_json", "remaining_life",
+           "RemainingLife"]

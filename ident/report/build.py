@@ -7,15 +7,22 @@ those into one self-contained HTML file (:mod:`ident.report.html`).
 
 Status of an element or bearing (the traffic light)
 ---------------------------------------------------
+The evidence is, per recording, the gap the fit *identified* (its verdict
+``identified``), else the wear verdict stored in ``diagnoses`` (the trained
+model's regressed gap or clearance, :mod:`ident.diagnose.verdict`).  Fits the
+fit itself rejected (not identified) are drawn hollow and left out of the trend;
+the headline counts them.
+
 The *current value* is the trend line at the last recording when three or more
-recordings give a trend, otherwise the last identified value.
+recordings give a trend, otherwise the last value.
 
 * ``critical`` (red): the current value is at or above the critical limit, or the
-  latest wear diagnosis says ``critical``.
+  latest verdict says ``critical``.
 * ``worn`` (amber): the current value is at or above the worn limit, the latest
-  diagnosis says ``worn``, or the 95 % interval of the time the trend reaches a
+  verdict says ``worn``, or the 95 % interval of the time the trend reaches a
   limit begins within ``horizon_days`` of the last recording.
-* ``good`` (green): none of these.  ``unknown`` (grey): no usable values.
+* ``good`` (green): none of these.  ``unknown`` (grey): no evidence at all (no
+  identified fit and no verdict).
 
 Limits are the mill file's ``gap_worn``/``gap_critical`` (elements, rad reduced,
 shown in mm where the element has a ``radius``, else mrad) and
@@ -27,7 +34,7 @@ from __future__ import annotations
 import datetime as dt
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 import numpy as np
 import pandas as pd
@@ -38,7 +45,7 @@ from ..store import Store, load_results
 from . import figures as F
 from .trend import Crossing, crossing, fit_trend
 
-__all__ = ["Assessment", "MillSection", "ReportSummary", "analyse_mill", "build_report"]
+__all__ = ["Assessment", "Evidence", "MillSection", "ReportSummary", "analyse_mill", "build_report"]
 
 DAY_NS = 86_400 * 10**9
 _Z95 = 1.959963984540054
@@ -71,9 +78,21 @@ class Assessment:
     classifier : str or None
         Latest state from the wear diagnosis.
     n : int
-        Recordings behind the trend.
+        Recordings behind the trend (identified fits, or verdicts without them).
     identifiable : bool
-        False when most fits flag the element not identifiable from the channels.
+        False when no fit identified the element's gap.
+    scale : float
+        Display unit per SI unit (``now * / scale`` is rad or m).
+    source : str
+        ``fit`` (identified gaps), ``diagnosis`` (the trained model's verdicts) or
+        ``""`` (no evidence).
+    n_identified, n_rejected, n_recordings : int
+        Fits that identified the gap, fits that did not, and the mill's processed
+        recordings.
+    t_last : float
+        Days since :attr:`MillSection.t_ref_ns` of the last evidence (NaN without).
+    worn_reached, critical_reached : float
+        Day of the first evidence at or above each limit (NaN when none is).
     """
 
     kind: str
@@ -94,6 +113,14 @@ class Assessment:
     classifier: str | None
     n: int
     identifiable: bool = True
+    scale: float = 1.0
+    source: str = ""
+    n_identified: int = 0
+    n_rejected: int = 0
+    n_recordings: int = 0
+    t_last: float = math.nan
+    worn_reached: float = math.nan
+    critical_reached: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -126,6 +153,10 @@ class ReportSummary:
     assessments : tuple of (str, Assessment)
         ``(mill name, assessment)`` for every element and bearing.
     elapsed_s : float
+    status : dict
+        The ``report --json`` document (:func:`ident.report.status.status_json`).
+    json_path : Path or None
+        Where it was written.
     """
 
     path: Path
@@ -134,6 +165,8 @@ class ReportSummary:
     n_failed: int
     assessments: tuple[tuple[str, Assessment], ...]
     elapsed_s: float
+    status: dict = field(default_factory=dict)
+    json_path: Path | None = None
 
 
 # ---- analysis -----------------------------------------------------------------------
@@ -145,7 +178,7 @@ def _status(now: float, worn: float, critical: float, classifier: str | None,
             worn_at: Crossing | None, crit_at: Crossing | None, t_last: float,
             horizon: float) -> tuple[str, str]:
     if not math.isfinite(now) and classifier is None:
-        return "unknown", "no identified values"
+        return "unknown", "no evidence: no identified fit and no diagnosis"
     if math.isfinite(now) and now >= critical:
         return "critical", "above the critical limit"
     if classifier == "critical":
@@ -161,10 +194,34 @@ def _status(now: float, worn: float, critical: float, classifier: str | None,
     return "good", "below the limits"
 
 
-def _assess(kind: str, id_: str, label: str, unit: str, days: np.ndarray, y: np.ndarray,
-            lo: np.ndarray, hi: np.ndarray, worn: float, critical: float,
-            classifier: str | None, horizon: float, identifiable: bool = True,
-            ) -> tuple[Assessment, F.GapPanel]:
+@dataclass(frozen=True)
+class Evidence:
+    """One element's or bearing's values over a mill's recordings, in display units.
+
+    ``t`` days since the report's reference time, ``y`` the value and ``lo, hi``
+    its 95 % interval (NaN where unknown); ``rejected_*`` the fits that did not
+    identify the gap (drawn, never trended).
+    """
+
+    t: np.ndarray
+    y: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    source: str
+    n_identified: int = 0
+    rejected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rejected_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def _first_at_or_above(t: np.ndarray, y: np.ndarray, limit: float) -> float:
+    hit = np.isfinite(t) & np.isfinite(y) & (y >= limit)
+    return float(np.min(t[hit])) if hit.any() else math.nan
+
+
+def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: float,
+            critical: float, classifier: str | None, horizon: float, *, scale: float = 1.0,
+            n_recordings: int = 0, quantity: str = "") -> tuple[Assessment, F.GapPanel]:
+    days, y, lo, hi = ev.t, ev.y, ev.lo, ev.hi
     sigma = (hi - lo) / (2 * _Z95)
     ok = np.isfinite(days) & np.isfinite(y)
     tr = fit_trend(days[ok], y[ok], sigma=sigma[ok]) if ok.sum() >= 2 else None
@@ -180,23 +237,32 @@ def _assess(kind: str, id_: str, label: str, unit: str, days: np.ndarray, y: np.
         i = int(np.argmax(np.where(ok, days, -np.inf)))
         t_last, now, now_lo, now_hi = float(days[i]), float(y[i]), float(lo[i]), float(hi[i])
     else:
-        t_last, now, now_lo, now_hi = 0.0, math.nan, math.nan, math.nan
-    if not identifiable:
-        status, reason = ("unknown", "not identifiable from the measured channels") \
-            if classifier is None else (classifier, "diagnosed (gap not identifiable)")
-    else:
-        status, reason = _status(now, worn, critical, classifier, w_at, c_at, t_last, horizon)
+        t_last, now, now_lo, now_hi = math.nan, math.nan, math.nan, math.nan
+    status, reason = _status(now, worn, critical, classifier, w_at, c_at,
+                             t_last if math.isfinite(t_last) else 0.0, horizon)
+    if status == "unknown" and ev.rejected_t.size:
+        reason = f"no evidence: the {ev.rejected_t.size} fit(s) did not identify the gap"
+    n_rej = int(ev.rejected_t.size)
     a = Assessment(kind=kind, id=id_, label=label, unit=unit, status=status, reason=reason,
                    now=now, now_lo=now_lo, now_hi=now_hi, worn=worn, critical=critical,
                    slope_per_30d=30.0 * trend.slope if trend is not None else math.nan,
                    p_increasing=trend.p_increasing if trend is not None else math.nan,
                    worn_at=w_at, critical_at=c_at, classifier=classifier, n=int(ok.sum()),
-                   identifiable=identifiable)
+                   identifiable=ev.n_identified > 0 or kind == "bearing", scale=scale,
+                   source=ev.source if ok.any() or classifier is not None else "",
+                   n_identified=ev.n_identified, n_rejected=n_rej, n_recordings=n_recordings,
+                   t_last=t_last, worn_reached=_first_at_or_above(days, y, worn),
+                   critical_reached=_first_at_or_above(days, y, critical))
     title = f"{id_}" + (f" — {label}" if label else "") + f"  [{status.upper()}]"
+    note = ""
+    if kind == "element" and ev.source == "diagnosis" and ok.any():
+        note = "gap regressed by the wear diagnosis (no fit identified it)"
+    elif not ok.any() and n_rej:
+        note = "no fit identified the gap: hollow points for reference only"
     panel = F.GapPanel(title=title, unit=unit, t=days[ok], y=y[ok], lo=lo[ok], hi=hi[ok],
                        worn=worn, critical=critical, trend=trend, worn_at=w_at,
-                       critical_at=c_at, status=status, horizon=horizon,
-                       note="" if identifiable else "not identifiable: for reference only")
+                       critical_at=c_at, status=status, horizon=horizon, note=note,
+                       rejected_t=ev.rejected_t, rejected_y=ev.rejected_y, quantity=quantity)
     return a, panel
 
 
@@ -205,6 +271,39 @@ def _latest_state(diag: pd.DataFrame, kind: str, target: str) -> str | None:
     if d.empty:
         return None
     return str(d.sort_values(["t0_ns", "recording_pk"]).iloc[-1]["state"])
+
+
+def _col(d: pd.DataFrame, name: str) -> np.ndarray:
+    return d[name].to_numpy(float) if name in d else np.full(len(d), np.nan)
+
+
+def _element_evidence(er: pd.DataFrame, diag: pd.DataFrame, eid: str, t_ref: int,
+                      f: float) -> Evidence:
+    """Identified fits of one element, else its verdicts' gaps; rejected fits apart."""
+    d = er[er["element"] == eid].sort_values("t0_ns")
+    verdict = d["identifiable"]
+    # rows of an older store carry no verdict (NULL): they count as identified
+    rejected = d[verdict.notna() & (verdict == False)]  # noqa: E712 - a nullable column
+    good = d[~d.index.isin(rejected.index)]
+    rej_t, rej_y = _days(rejected["t0_ns"], t_ref), rejected["gap"].to_numpy(float) * f
+    if not good.empty:
+        return Evidence(t=_days(good["t0_ns"], t_ref), y=good["gap"].to_numpy(float) * f,
+                        lo=good["gap_ci_lo"].to_numpy(float) * f,
+                        hi=good["gap_ci_hi"].to_numpy(float) * f, source="fit",
+                        n_identified=len(good), rejected_t=rej_t, rejected_y=rej_y)
+    v = diag[(diag["kind"] == "element") & (diag["target"] == eid)
+             & diag["gap"].notna()].sort_values("t0_ns")
+    return Evidence(t=_days(v["t0_ns"], t_ref), y=v["gap"].to_numpy(float) * f,
+                    lo=_col(v, "value_ci_lo") * f, hi=_col(v, "value_ci_hi") * f,
+                    source="diagnosis", rejected_t=rej_t, rejected_y=rej_y)
+
+
+def _bearing_evidence(diag: pd.DataFrame, bid: str, t_ref: int) -> Evidence:
+    v = diag[(diag["kind"] == "bearing") & (diag["target"] == bid)
+             & diag["clearance"].notna()].sort_values("t0_ns")
+    return Evidence(t=_days(v["t0_ns"], t_ref), y=v["clearance"].to_numpy(float) * 1e3,
+                    lo=_col(v, "value_ci_lo") * 1e3, hi=_col(v, "value_ci_hi") * 1e3,
+                    source="diagnosis", n_identified=len(v))
 
 
 def _mill_of(name: str, recs: pd.DataFrame, mills: pd.DataFrame,
@@ -263,39 +362,27 @@ def analyse_mill(name: str, res: dict[str, pd.DataFrame], *, mill: Mill | None =
 
     if mill is not None:
         for e in mill.elements:
-            d = er[er["element"] == e.id].sort_values("t0_ns")
-            cls = _latest_state(diag, "element", e.id)
-            source = "fit"
-            if d.empty:  # no gap fit (e.g. --no-fit): the diagnosis' regressed gap
-                d = diag[(diag["kind"] == "element") & (diag["target"] == e.id)
-                         & diag["gap"].notna()].sort_values("t0_ns")
-                d = d.assign(gap_ci_lo=np.nan, gap_ci_hi=np.nan, identifiable=np.nan)
-                source = "diagnosis"
-            if d.empty and cls is None:
-                continue
             f, unit = (e.gap_mm(1.0), "mm") if e.radius else (1e3, "mrad")
-            days = _days(d["t0_ns"], t_ref)
-            ident = d["identifiable"].dropna()
-            identifiable = bool(ident.mean() >= 0.5) if len(ident) else True
-            a, p = _assess("element", e.id, e.label, unit, days,
-                           d["gap"].to_numpy(float) * f, d["gap_ci_lo"].to_numpy(float) * f,
-                           d["gap_ci_hi"].to_numpy(float) * f, e.gap_worn * f,
-                           e.gap_critical * f, cls, horizon_days, identifiable)
-            if source == "diagnosis" and len(d):
-                p = replace(p, note="gap regressed by the wear diagnosis (no gap fit stored)")
+            ev = _element_evidence(er, diag, e.id, t_ref, f)
+            cls = _latest_state(diag, "element", e.id)
+            if not ev.t.size and not ev.rejected_t.size and cls is None:
+                continue
+            quantity = (f"gap at r = {e.radius:g} m" if e.radius else
+                        "gap (motor shaft)")
+            a, p = _assess("element", e.id, e.label, unit, ev, e.gap_worn * f,
+                           e.gap_critical * f, cls, horizon_days, scale=f,
+                           n_recordings=len(done), quantity=quantity)
             assessments.append(a)
             panels.append(p)
-        bd = diag[(diag["kind"] == "bearing")]
         for b in mill.bearings:
-            d = bd[(bd["target"] == b.id)].sort_values("t0_ns")
-            if d.empty:
+            ev = _bearing_evidence(diag, b.id, t_ref)
+            cls = _latest_state(diag, "bearing", b.id)
+            if not ev.t.size and cls is None:
                 continue
-            y = d["clearance"].to_numpy(float) * 1e3
-            nan = np.full_like(y, np.nan)
-            a, p = _assess("bearing", b.id, f"bearing of {b.mesh}", "mm",
-                           _days(d["t0_ns"], t_ref), y, nan, nan, b.clearance_worn * 1e3,
-                           b.clearance_critical * 1e3, _latest_state(diag, "bearing", b.id),
-                           horizon_days)
+            a, p = _assess("bearing", b.id, f"bearing of {b.mesh}", "mm", ev,
+                           b.clearance_worn * 1e3, b.clearance_critical * 1e3, cls,
+                           horizon_days, scale=1e3, n_recordings=len(done),
+                           quantity="radial clearance")
             assessments.append(a)
             bpanels.append(p)
     else:
@@ -385,7 +472,8 @@ def _safe_url(store: str | Store) -> str:
 
 def build_report(store: str | Store, out: str | Path, *, mill: Mill | str | Path | None = None,
                  horizon_days: float = 30.0, title: str = "Driveline wear trend report",
-                 now: dt.datetime | None = None) -> ReportSummary:
+                 now: dt.datetime | None = None, json_out: str | Path | None = None,
+                 stale_days: float = 14.0) -> ReportSummary:
     """Write the wear trend report of a results store as one self-contained HTML file.
 
     Parameters
@@ -400,7 +488,11 @@ def build_report(store: str | Store, out: str | Path, *, mill: Mill | str | Path
         Look-ahead of the amber status, days.
     title : str
     now : datetime, optional
-        "Generated at" time (default: now, UTC).
+        "Generated at" time, the date days left are counted from (default: now, UTC).
+    json_out : path, optional
+        Also write each part's status here (cli.md ``report --json``).
+    stale_days : float
+        Data older than this many days at ``now`` is flagged stale.
 
     Returns
     -------
@@ -413,7 +505,10 @@ def build_report(store: str | Store, out: str | Path, *, mill: Mill | str | Path
     MillFileError
         ``mill`` is a path to a bad mill file.
     """
+    import json
+
     from .html import render
+    from .status import status_json
 
     t_start = time.perf_counter()
     if mill is not None and not isinstance(mill, Mill):
@@ -421,16 +516,26 @@ def build_report(store: str | Store, out: str | Path, *, mill: Mill | str | Path
     res = load_results(store, mill=mill.name if mill is not None else None)
     names = sorted(res["recordings"]["mill_name"].unique()) if len(res["recordings"]) else []
     sections = [analyse_mill(n, res, mill=mill, horizon_days=horizon_days) for n in names]
-    html = render(sections, runs=res["runs"], title=title,
-                  store=_safe_url(store),
-                  now=now or dt.datetime.now(dt.timezone.utc))
+    now = now or dt.datetime.now(dt.timezone.utc)
+    status = status_json(sections, now=now, stale_days=stale_days)
+    html = render(sections, runs=res["runs"], title=title, store=_safe_url(store), now=now,
+                  status=status)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(out)
+    _write_atomic(out, html)
+    json_path = None
+    if json_out is not None:
+        json_path = Path(json_out)
+        _write_atomic(json_path, json.dumps(status, indent=2) + "\n")
     recs = res["recordings"]
     return ReportSummary(path=out, mills=tuple(names), n_recordings=len(recs),
                          n_failed=int((recs["status"] == "failed").sum()) if len(recs) else 0,
                          assessments=tuple((s.name, a) for s in sections for a in s.assessments),
-                         elapsed_s=time.perf_counter() - t_start)
+                         elapsed_s=time.perf_counter() - t_start, status=status,
+                         json_path=json_path)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import base64
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -59,6 +59,11 @@ class GapPanel:
         Days the trend line is drawn past the last point.
     note : str
         A line under the title (e.g. "not identifiable").
+    rejected_t, rejected_y : ndarray
+        Fits that did not identify the gap (days, display unit): drawn hollow,
+        never part of the trend.
+    quantity : str
+        What ``y`` is, for the axis label (e.g. "gap at r = 0.5 m").
     """
 
     title: str
@@ -75,6 +80,9 @@ class GapPanel:
     status: str
     horizon: float
     note: str = ""
+    rejected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rejected_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    quantity: str = ""
 
 
 def _date_axis(ax, t0_ns: int) -> None:
@@ -90,6 +98,22 @@ def _date_axis(ax, t0_ns: int) -> None:
 
     ax.xaxis.set_major_locator(MaxNLocator(5))
     ax.xaxis.set_major_formatter(FuncFormatter(fmt))
+
+
+def _y_range(p: GapPanel) -> tuple[float, float]:
+    """Both limits, every identified value with its interval, rejected fits up to 2x critical."""
+    top = [p.critical * 1.12]
+    if np.isfinite(p.hi).any():
+        top.append(float(np.nanmax(p.hi)))
+    if np.isfinite(p.y).any():
+        top.append(float(np.nanmax(p.y)) * 1.05)
+    rej = p.rejected_y[np.isfinite(p.rejected_y)]
+    if rej.size:
+        top.append(min(float(rej.max()) * 1.05, 2.0 * p.critical))
+    bottom = [0.0]
+    if np.isfinite(p.lo).any():
+        bottom.append(float(np.nanmin(p.lo)))
+    return min(bottom), max(top)
 
 
 def gap_trends(panels: Sequence[GapPanel], *, t0_ns: int, ncols: int = 2) -> str:
@@ -121,7 +145,12 @@ def gap_trends(panels: Sequence[GapPanel], *, t0_ns: int, ncols: int = 2) -> str
                         color="#263238", ecolor="#90a4ae", elinewidth=1, capsize=0,
                         label="identified (95 % CI)")
         if (~has_err).any():
-            ax.plot(p.t[~has_err], p.y[~has_err], "o", ms=3.5, color="#263238")
+            ax.plot(p.t[~has_err], p.y[~has_err], "o", ms=3.5, color="#263238",
+                    label=None if has_err.any() else "value")
+        rej = np.isfinite(p.rejected_t) & np.isfinite(p.rejected_y)
+        if rej.any():
+            ax.plot(p.rejected_t[rej], p.rejected_y[rej], "o", ms=4.5, mfc="none",
+                    mec="#78909c", mew=1.0, label="not identified (not in the trend)")
         ax.axhline(p.worn, color=_WORN, ls="--", lw=1.2, label="worn limit")
         ax.axhline(p.critical, color=_CRIT, ls="--", lw=1.2, label="critical limit")
         for c, col in ((p.worn_at, _WORN), (p.critical_at, _CRIT)):
@@ -132,13 +161,12 @@ def gap_trends(panels: Sequence[GapPanel], *, t0_ns: int, ncols: int = 2) -> str
                 ax.axvspan(max(c.t_early, p.trend.t_first), min(late, t_end), color=col,
                            alpha=0.10, lw=0)
             ax.axvline(c.t, color=col, lw=1.0)
-        ymax = max([p.critical * 1.12] + [float(np.nanmax(p.hi))] if np.isfinite(p.hi).any()
-                   else [p.critical * 1.12])
-        ymin = min(0.0, float(np.nanmin(p.lo)) if np.isfinite(p.lo).any() else 0.0)
-        ax.set_ylim(ymin, ymax)
-        ax.set_xlim(min(p.t.min() if p.t.size else 0.0, 0.0) - 0.5, t_end)
+        ax.set_ylim(*_y_range(p))
+        t_lo = min([0.0, *(p.t.tolist()), *(p.rejected_t[rej].tolist())])
+        ax.set_xlim(t_lo - 0.5, t_end)
         ax.set_title(p.title + (f"\n{p.note}" if p.note else ""), fontsize=9.5, loc="left")
-        ax.set_ylabel(p.unit)
+        ax.set_ylabel(f"{p.quantity or 'value'}, {p.unit}", fontsize=8.5)
+        ax.set_xlabel("recording date (UTC)", fontsize=8.5)
         ax.grid(alpha=0.3)
         _date_axis(ax, t0_ns)
         ax.tick_params(labelsize=8)

@@ -75,45 +75,93 @@ def _light(status: str) -> str:
 
 def _forecast(a: Assessment, c: Crossing | None, limit: float, t_ref: int) -> str:
     if math.isfinite(a.now) and a.now >= limit:
-        return "<b>reached</b>"
+        when = c.t if c is not None and c.trend and math.isfinite(c.t) else (
+            a.worn_reached if limit == a.worn else a.critical_reached)
+        return f"<b>crossed</b> {_date(t_ref, when)}" if math.isfinite(when) else "<b>crossed</b>"
     if c is None:
         return "too few recordings for a trend" if a.n < 3 else "–"
     if not c.trend:
-        return "no rising trend"
+        return "not rising (no forecast)"
     if c.t > _FAR_DAYS:
         return "not within 10 years"
     return (f"<b>{_date(t_ref, c.t)}</b><br><span class='note'>95 %: "
             f"{_date(t_ref, c.t_early)} – {_date(t_ref, c.t_late)}</span>")
 
 
-def _glance(s: MillSection) -> str:
+def _days_words(d: float | None) -> str:
+    if d is None or not math.isfinite(d):
+        return "no end"
+    if d < 1.0:
+        return "less than a day"
+    return f"{d:.0f} day" + ("" if round(d) == 1 else "s")
+
+
+def life_words(part: dict | None) -> str:
+    """Remaining life of one part of the status JSON (:mod:`ident.report.status`) in plain words."""
+    if not part or part.get("status") == "unknown":
+        return "not known: no evidence"
+    limit = part.get("next_limit")
+    if part.get("critical_reached") or part.get("status") == "critical":
+        since = part.get("critical_at")
+        return "critical limit reached" + (f" ({since})" if since else "") + ": act now"
+    days = part.get("days_left")
+    if days is None:
+        return f"no rising trend: no date for the {limit} limit"
+    ci = part.get("days_left_ci95")
+    band = ""
+    if ci is not None and ci[0] is not None:
+        band = f" (95 %: {_days_words(ci[0])} to {_days_words(ci[1])})"
+    if days <= 0:
+        return f"{limit} limit due now{band}"
+    return f"about {_days_words(days)} to the {limit} limit{band}"
+
+
+def _evidence(a: Assessment) -> str:
+    if a.kind == "bearing":
+        return f"{a.n_identified} of {a.n_recordings} diagnosed"
+    txt = f"{a.n_identified} of {a.n_recordings} identified"
+    if a.n_rejected:
+        txt += f"<br><span class='note'>{a.n_rejected} fit(s) not identified</span>"
+    if a.source == "diagnosis":
+        txt += "<br><span class='note'>value from the wear diagnosis</span>"
+    return txt
+
+
+def _glance(s: MillSection, status: dict | None = None) -> str:
     if not s.assessments:
         return "<p class='note'>No identified gaps or clearances stored for this mill.</p>"
+    parts = (status or {}).get("mills", {}).get(s.name, {})
     rows = []
     for a in sorted(s.assessments, key=lambda a: (a.kind != "element", _ORDER[a.status], a.id)):
+        part = parts.get("elements" if a.kind == "element" else "bearings", {}).get(a.id)
         now = (f"{_fmt(a.now)} <span class='note'>({_fmt(a.now_lo)} – {_fmt(a.now_hi)})</span>"
                if math.isfinite(a.now_lo) else _fmt(a.now))
         trend = "–" if not math.isfinite(a.slope_per_30d) else (
             f"{a.slope_per_30d:+.3f}" + ("" if a.p_increasing < 0.05 else
                                          " <span class='note'>(not significant)</span>"))
+        last = _date(s.t_ref_ns, a.t_last) if math.isfinite(a.t_last) else "–"
         rows.append(
             f"<tr><td>{_light(a.status)}</td><td><b>{_e(a.id)}</b> {_e(a.label)}<br>"
             f"<span class='note'>{_e(a.reason)}</span></td>"
-            f"<td class='num'>{now}</td><td class='num'>{_fmt(a.worn)} / {_fmt(a.critical)}</td>"
+            f"<td class='num'>{now} <span class='note'>{_e(a.unit)}</span></td>"
+            f"<td class='num'>{_fmt(a.worn)} / {_fmt(a.critical)}</td>"
             f"<td class='num'>{trend}</td>"
+            f"<td><b>{_e(life_words(part))}</b></td>"
             f"<td>{_forecast(a, a.worn_at, a.worn, s.t_ref_ns)}</td>"
             f"<td>{_forecast(a, a.critical_at, a.critical, s.t_ref_ns)}</td>"
-            f"<td>{_e(a.classifier or '–')}</td><td class='num'>{a.n}</td></tr>")
+            f"<td>{_e(a.classifier or '–')}</td><td>{last}</td><td>{_evidence(a)}</td></tr>")
     return ("<table><tr><th>status</th><th>element / bearing</th><th>now (95 %)</th>"
-            "<th>worn / critical limit</th><th>trend per 30 days</th><th>worn limit reached</th>"
-            "<th>critical limit reached</th><th>diagnosis (latest)</th><th>recordings</th></tr>"
+            "<th>worn / critical limit</th><th>trend per 30 days</th><th>remaining life</th>"
+            "<th>worn limit</th><th>critical limit</th><th>latest verdict</th>"
+            "<th>last data</th><th>evidence</th></tr>"
             + "".join(rows) + "</table>"
-            "<p class='note'>Values in mm (gaps where the element has a radius, else mrad; "
-            "bearing clearances in mm). <i>now</i> is the trend line at the last recording "
-            "with its 95 % confidence band (or the last fit when fewer than three "
-            "recordings). Forecasts: when the fitted wear line reaches the limit, with "
-            "Fieller's 95 % interval; <i>no rising trend</i> when the slope is not "
-            "significantly positive (one-sided p ≥ 0.05).</p>")
+            "<p class='note'>Values in mm (gaps at the element's radius where it has one, "
+            "else mrad at the motor shaft; bearing clearances in mm). <i>now</i> is the "
+            "trend line at the last recording with its 95 % confidence band (or the last "
+            "value when fewer than three recordings). Remaining life counts from this "
+            "report's date to the next limit the trend reaches, with Fieller's 95 % "
+            "interval; no date when the values are not significantly rising (one-sided "
+            "p ≥ 0.05). Fits that did not identify a gap are left out of the trend.</p>")
 
 
 def _headline(s: MillSection) -> str:
@@ -135,9 +183,9 @@ def _headline(s: MillSection) -> str:
             f"<b>{_e(a.id)}</b> {_e(a.label)} — {_e(a.reason)}" for a in by["worn"])
     elif not by["good"]:
         color = STATUS_COLORS["unknown"]
-        text = ("No element's or bearing's wear state is known: no fit identified its gap "
-                "from the measured channels and no diagnosis decided (see the trend panels "
-                "and <i>Data quality</i>).")
+        text = ("No element's or bearing's wear state is known: no fit identified a gap "
+                "and no wear diagnosis is stored (see the trend panels and "
+                "<i>Data quality</i>).")
     else:
         color = STATUS_COLORS["good"]
         text = "All elements and bearings below their worn limits, no limit expected within " \
@@ -148,8 +196,70 @@ def _headline(s: MillSection) -> str:
                     "state is unknown.")
     counts = ", ".join(f"{len(by[k])} {k}" for k in ("critical", "worn", "good", "unknown")
                        if by[k])
+    n_rej = sum(a.n_rejected for a in s.assessments if a.kind == "element")
+    n_fit = n_rej + sum(a.n_identified for a in s.assessments if a.kind == "element")
+    if n_rej:
+        counts += (f" · {n_rej} of {n_fit} element fits did not identify their gap "
+                   "(hollow points, left out of the trends)")
     return (f'<div class="headline" style="border-left-color:{color}">{text}'
             f'<br><span class="note">{counts}</span></div>')
+
+
+#: Plain words for the codes the stages store (solver statuses, finding kinds, error types).
+SOLVER_WORDS = {"Solve_Succeeded": "converged",
+                "Solved_To_Acceptable_Level": "converged (to the acceptable tolerance)",
+                "Maximum_Iterations_Exceeded": "stopped: iteration limit",
+                "Maximum_CpuTime_Exceeded": "stopped: time limit",
+                "Maximum_WallTime_Exceeded": "stopped: time limit",
+                "Infeasible_Problem_Detected": "failed: no feasible solution",
+                "Restoration_Failed": "failed: restoration phase",
+                "Error_In_Step_Computation": "failed: step computation",
+                "Invalid_Number_Detected": "failed: invalid number",
+                "(none)": "no solver status"}
+FINDING_WORDS = {"no_model": "no trained wear model (diagnosis skipped)",
+                 "stage_unavailable": "stage not installed (skipped)",
+                 "no_absolute_time": "no absolute time in the file (file date used)",
+                 "dropout": "telemetry dropout", "gap": "gap in the samples",
+                 "clipping": "signal clipped", "flatline": "flat (stuck) signal",
+                 "n_found": "transients found"}
+ERROR_WORDS = {"RecordingError": "bad recording", "MillFileError": "bad mill file",
+               "FitError": "the fit failed", "IdentError": "could not be processed",
+               "MemoryError": "out of memory", "WorkerCrashed": "the worker process died"}
+
+
+def plain(code: object, words: dict[str, str]) -> str:
+    """Plain words for a stored code: the table's, else the code with its underscores as spaces."""
+    if code is None or (isinstance(code, float) and math.isnan(code)):
+        return ""
+    c = str(code)
+    if c in words:
+        return words[c]
+    if c.startswith("warning:"):
+        return "warning (" + c.split(":", 1)[1].replace("Warning", "").strip() + ")"
+    return c.replace("_", " ").lower() if c.replace("_", "").isalnum() and "_" in c else c
+
+
+def _plain_quality(df: pd.DataFrame | None) -> pd.DataFrame | None:
+    if df is None or df.empty:
+        return df
+    return df.assign(kind=[plain(k, FINDING_WORDS) for k in df["kind"]]).rename(
+        columns={"kind": "finding"})
+
+
+def _plain_solver(df: pd.DataFrame | None) -> pd.DataFrame | None:
+    if df is None or df.empty:
+        return df
+    col = "solver_status"
+    return df.assign(**{col: [plain(k, SOLVER_WORDS) for k in df[col]]}).rename(
+        columns={col: "solver"})
+
+
+def _plain_failed(df: pd.DataFrame | None) -> pd.DataFrame | None:
+    if df is None or df.empty:
+        return df
+    return pd.DataFrame({"file": df["file_name"], "stage": df["stage"],
+                         "what": [plain(k, ERROR_WORDS) for k in df["error_kind"]],
+                         "why": df["error"], "processed": df["processed"]})
 
 
 def _table(df: pd.DataFrame, *, num: Sequence[str] = (), err: Sequence[str] = (),
@@ -179,7 +289,23 @@ def _img(uri: str | None, alt: str) -> str:
         f"<p class='note'>No data for {_e(alt)}.</p>"
 
 
-def _section(s: MillSection) -> str:
+def _age(s: MillSection, status: dict | None) -> str:
+    """Last recording's date, the data's age at the report's date and a stale warning."""
+    m = (status or {}).get("mills", {}).get(s.name)
+    if not m or m.get("data_age_days") is None:
+        return ""
+    age = m["data_age_days"]
+    last = _date(s.t_ref_ns, (s.t_last_ns - s.t_ref_ns) / 864e11)
+    txt = f"Last recording {last}, {_days_words(max(age, 0.0))} before this report."
+    if m.get("stale"):
+        return (f"<p class='headline' style='border-left-color:{STATUS_COLORS['worn']}'>"
+                f"<b>Stale data:</b> {_e(txt)} The states below describe the mill as it was "
+                f"then; more than {status.get('stale_days', 14):g} days without a new "
+                "recording.</p>")
+    return f"<p class='meta'>{_e(txt)}</p>"
+
+
+def _section(s: MillSection, status: dict | None = None) -> str:
     sid = "mill-" + "".join(ch if ch.isalnum() else "-" for ch in s.name)
     period = (f"{_date(s.t_ref_ns, 0)} – {_date(s.t_ref_ns, (s.t_last_ns - s.t_ref_ns) / 864e11)}"
               if s.t_ref_ns else "no dated recordings")
@@ -187,13 +313,14 @@ def _section(s: MillSection) -> str:
     parts = [f'<section class="mill" id="{sid}"><h2>Mill {_e(s.name)}{desc}</h2>',
              f"<p class='meta'>Recordings {period} · {s.n_done} processed · "
              f"{s.n_failed} failed · {s.n_transients} transients ({s.n_bites} bites)</p>",
-             _headline(s)]
+             _headline(s), _age(s, status)]
     if "mill" in s.notes:
         parts.append(f"<p class='note'>{_e(s.notes['mill'])}</p>")
-    parts.append(f"<h3>At a glance</h3>{_glance(s)}")
+    parts.append(f"<h3>At a glance</h3>{_glance(s, status)}")
     parts.append("<h3>Gap trend per element</h3>" + _img(s.figures.get("gaps"), "gap trends") +
                  "<p class='note'>Each point is one recording's identified gap with its 95 % "
-                 "interval; the line and shaded band are the weighted linear trend and its "
+                 "interval; hollow points are fits that did not identify the gap (left out "
+                 "of the trend); the line and shaded band are the weighted linear trend and its "
                  "95 % confidence band; dashed lines are the worn (amber) and critical (red) "
                  "limits of the mill file; a vertical line and shading mark when the trend "
                  "reaches a limit and its 95 % interval. The frame colour is the status.</p>")
@@ -216,29 +343,30 @@ def _section(s: MillSection) -> str:
     parts.append("<h3>Data quality</h3>" +
                  "<p class='note'>Findings of the readers and warnings of the stages, by kind "
                  "(recordings affected and channels named).</p>" +
-                 _table(s.tables.get("quality")) +
+                 _table(_plain_quality(s.tables.get("quality"))) +
                  "<p class='note'>Solver status of the gap fits (normalized RMS error of the "
                  "fitted model):</p>" +
-                 _table(s.tables.get("solver"), num=("median nrmse", "worst nrmse")) +
+                 _table(_plain_solver(s.tables.get("solver")),
+                        num=("median nrmse", "worst nrmse")) +
                  (f"<p class='note'>Fits worse than the linear baseline: "
                   f"{_e(s.notes['worse_than_linear'])}.</p>"
                   if "worse_than_linear" in s.notes else ""))
     failed = s.tables.get("failed")
     parts.append(f"<h3>Failed recordings ({0 if failed is None else len(failed)})</h3>" +
-                 _table(failed, err=("error",)))
+                 _table(_plain_failed(failed), err=("why",)))
     parts.append("</section>")
     return "".join(parts)
 
 
 def render(sections: Sequence[MillSection], *, runs: pd.DataFrame, title: str, store: str,
-           now: dt.datetime) -> str:
+           now: dt.datetime, status: dict | None = None) -> str:
     """The report page for ``sections`` (see :func:`ident.report.build_report`)."""
     nav = ""
     if len(sections) > 1:
         nav = "<nav>Mills: " + "".join(
             f'<a href="#mill-{"".join(c if c.isalnum() else "-" for c in s.name)}">'
             f"{_e(s.name)}</a>" for s in sections) + "</nav>"
-    body = "".join(_section(s) for s in sections) or \
+    body = "".join(_section(s, status) for s in sections) or \
         "<p>The store holds no recordings yet. Run <code>ident campaign</code> first.</p>"
     run_tab = ""
     if runs is not None and len(runs):
