@@ -264,3 +264,40 @@ def test_parent_killed_with_sigkill(tmp_path, mill, mill_path):
     redo = []
     s = _run(folder, mill, url, on_stored=lambda f, o: redo.append(f))
     assert s.n_skipped == n and len(redo) == 8 - n and s.n_failed == 0
+
+
+def test_the_cli_campaign_trains_the_mills_model_on_first_use(tmp_path, mill, mill_path,
+                                                              monkeypatch, capsys):
+    """``ident campaign`` diagnoses by default: no cached model -> ensure_model trains one."""
+    import ident.store.campaign as C
+    from ident.cli import main
+    from ident.diagnose import model_cache_path
+
+    calls = []
+
+    def fake_ensure(m, *, samples, jobs, progress):
+        calls.append((m.name, samples, jobs, progress))
+        path = model_cache_path(m)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"a model")
+        return path
+
+    monkeypatch.setattr(C, "ensure_model", fake_ensure)
+    (tmp_path / "empty").mkdir()
+    base = ["campaign", str(tmp_path / "empty"), "--mill", str(mill_path), "--workers", "0",
+            "--store", f"sqlite:///{tmp_path}/r.db", "--quiet"]
+    try:
+        assert main(base + ["--no-diagnose"]) == 0
+        assert calls == []
+        assert main(base + ["--samples", "40", "--jobs", "1"]) == 0
+        assert calls == [("hsm-f1", 40, 1, False)]
+        assert main(base + ["--samples", "5"]) == 2
+        assert "--samples must be at least 10. Got 5" in capsys.readouterr().err
+        # the library's run_campaign trains only when asked, and never for a test double
+        run_campaign(tmp_path / "empty", mill, f"sqlite:///{tmp_path}/r.db", workers=0,
+                     progress=False)
+        run_campaign(tmp_path / "empty", mill, f"sqlite:///{tmp_path}/r.db", workers=0,
+                     progress=False, process=double_process, train=True)
+        assert len(calls) == 1
+    finally:
+        model_cache_path(mill).unlink(missing_ok=True)

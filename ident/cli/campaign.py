@@ -1,5 +1,8 @@
 """``ident campaign DIR --mill M --store URL [--scheduler ADDR] [--workers N]``.
 
+Diagnoses by default with the mill's cached wear model, training it on first use
+(with progress; ``--no-diagnose`` skips the diagnosis, ``--model`` names one).
+
 Exit codes: 0 every recording stored, 3 finished but some recordings are stored as
 failed (this run or an earlier one), 2 bad input (mill file, folder, store URL,
 scheduler), 1 internal failure.
@@ -10,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..errors import IdentError
 from .common import load_mill_arg, write_json
 
 #: Exit code of a campaign that finished with failed recordings (cli.md).
@@ -41,7 +45,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="fit at most N transients per recording")
     p.add_argument("--no-fit", action="store_true", help="skip the gap fit")
     p.add_argument("--no-diagnose", action="store_true", help="skip the wear diagnosis")
-    p.add_argument("--model", metavar="MODEL", help="trained wear classifier for the diagnosis")
+    p.add_argument("--model", metavar="MODEL",
+                   help="trained wear model for the diagnosis (default: the mill's cached "
+                        "model, trained on first use)")
+    p.add_argument("--samples", type=int, default=300, metavar="N",
+                   help="library size when the mill's model has to be trained first (300)")
+    p.add_argument("--jobs", type=int, default=2, metavar="N",
+                   help="simulation processes when the model has to be trained first (2)")
     p.add_argument("--retry-failed", action="store_true",
                    help="process again the recordings stored as failed")
     p.add_argument("--memory-limit-mb", type=int, metavar="MB",
@@ -56,13 +66,18 @@ def run(args: argparse.Namespace) -> int:
     from ..store import Settings, run_campaign  # heavy: imported when the command runs
 
     mill = load_mill_arg(args)
+    if args.samples < 10:
+        raise IdentError(f"--samples must be at least 10. Got {args.samples}")
+    if args.jobs < 1:
+        raise IdentError(f"--jobs must be at least 1. Got {args.jobs}")
     settings = Settings(family=args.family, fit=not args.no_fit,
                         per_transient=args.per_transient, max_transients=args.max_transients,
                         diagnose=not args.no_diagnose, model=args.model)
     summary = run_campaign(args.dir, mill, args.store, workers=args.workers,
                            scheduler=args.scheduler, settings=settings,
                            progress=not args.quiet, retry_failed=args.retry_failed,
-                           memory_limit_mb=args.memory_limit_mb, min_age_s=args.min_age_s)
+                           memory_limit_mb=args.memory_limit_mb, min_age_s=args.min_age_s,
+                           train=True, train_samples=args.samples, train_jobs=args.jobs)
     write_json(summary.to_dict(), args.out)
     if not args.quiet:
         print(f"ident campaign: {summary.n_found} recordings: {summary.n_done} stored, "

@@ -20,8 +20,8 @@ from .campaign import CampaignError, CampaignSummary, default_workers, run_campa
 from .discovery import RecordingSource, discover
 from .load import RESULT_TABLES, load_results
 from .outcome import RecordingOutcome
-from .process import (Settings, available_stages, library_versions, process_recording,
-                      settings_hash)
+from .process import (Settings, available_stages, ensure_model, library_versions,
+                      process_recording, settings_hash)
 from .sample import SampleCampaign, make_sample_campaign
 from .store import RecordingKey, Store, open_store
 
@@ -29,4 +29,4 @@ __all__ = ["open_store", "Store", "RecordingKey", "load_results", "RESULT_TABLES
            "run_campaign", "CampaignSummary", "CampaignError", "default_workers",
            "Settings", "process_recording", "settings_hash", "library_versions",
            "available_stages", "make_sample_campaign", "SampleCampaign", "RecordingOutcome",
-           "RecordingSource", "discover"]
+           "RecordingSource", "discover", "ensure_model"]

@@ -41,8 +41,9 @@ from ..errors import IdentError, MillFileError, ModelArtifactError, StoreError
 from ..io.millfile import load_mill
 from .discovery import RecordingSource, discover
 from .outcome import RecordingOutcome
-from .process import (ProcessFn, Settings, available_stages, describe_error, library_versions,
-                      model_path, process_recording, settings_hash)
+from .process import (DEFAULT_LIBRARY_SAMPLES, ProcessFn, Settings, available_stages,
+                      describe_error, ensure_model, library_versions, model_path,
+                      process_recording, settings_hash)
 from .store import RecordingKey, Store, open_store
 
 __all__ = ["run_campaign", "CampaignSummary", "CampaignError", "default_workers"]
@@ -290,7 +291,8 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                  tasks_per_worker: int = 25, memory_limit_mb: int | None = None,
                  min_age_s: float = 0.0,
                  on_stored: Callable[[str, RecordingOutcome], None] | None = None,
-                 ) -> CampaignSummary:
+                 train: bool = False, train_samples: int = DEFAULT_LIBRARY_SAMPLES,
+                 train_jobs: int = 2) -> CampaignSummary:
     """Process every recording under ``directory`` into the results store ``store``.
 
     Parameters
@@ -325,6 +327,13 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         Leave out recordings modified less than this many seconds ago (still arriving).
     on_stored : callable, optional
         Called as ``on_stored(file_name, outcome)`` after each commit.
+    train : bool
+        Diagnose with the mill's cached wear model, training it first when there is
+        none (:func:`~ident.store.process.ensure_model`; ``ident campaign`` does so
+        by default).  Only with ``settings.diagnose``, no ``settings.model`` and the
+        real ``process``.
+    train_samples, train_jobs : int
+        Library size and simulation processes of that training.
 
     Returns
     -------
@@ -346,6 +355,9 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         extra["stages"] = list(available_stages())
     if settings.model and not Path(settings.model).is_file():
         raise ModelArtifactError(f"wear model not found: {settings.model}")
+    if (train and settings.diagnose and not settings.model and process is process_recording
+            and "diagnose" in available_stages()):
+        ensure_model(mill, samples=train_samples, jobs=train_jobs, progress=progress)
     model_file = model_path(mill, settings) if settings.diagnose else None
     if model_file is not None:
         from .discovery import content_hash

@@ -28,7 +28,10 @@ from ..errors import DataQualityWarning, IdentError
 from .outcome import RecordingOutcome, jsonable
 
 __all__ = ["Settings", "process_recording", "settings_hash", "library_versions", "ProcessFn",
-           "available_stages", "model_path"]
+           "available_stages", "model_path", "ensure_model", "DEFAULT_LIBRARY_SAMPLES"]
+
+#: Library size of a wear model trained on first use (as ``ident train`` and ``ident diagnose``).
+DEFAULT_LIBRARY_SAMPLES = 300
 
 #: The signature of a per-recording processing function (the campaign's unit of work).
 ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
@@ -136,6 +139,62 @@ def model_path(mill: Mill, settings: Settings) -> Path | None:
 
     p = Path(model_cache_path(mill))
     return p if p.is_file() else None
+
+
+def ensure_model(mill: Mill, *, samples: int = DEFAULT_LIBRARY_SAMPLES, jobs: int = 2,
+                 seed: int = 0, progress: bool = True) -> Path:
+    """The mill's cached wear model, trained first when there is none (or it is unusable).
+
+    The model is trained as ``ident diagnose`` trains it on first use (a simulated
+    library of ``samples`` recordings, bearings included) and cached at
+    :func:`ident.diagnose.model_cache_path`.
+
+    Parameters
+    ----------
+    mill : Mill
+    samples : int
+        Simulated recordings in the library.
+    jobs : int
+        Worker processes of the simulation.
+    seed : int
+        Random seed of the library and the trees.
+    progress : bool
+        Say what happens on stderr (a progress bar while simulating).
+
+    Returns
+    -------
+    Path
+        The artefact.
+    """
+    from ..diagnose import (load_model, model_cache_path, save_model, simulate_library,
+                            train_model)
+    from ..errors import ModelArtifactError
+
+    path = Path(model_cache_path(mill))
+    if path.is_file():
+        try:
+            load_model(path, mill)
+            return path
+        except ModelArtifactError as exc:
+            if progress:
+                print(f"ident campaign: cached wear model unusable ({exc}); retraining",
+                      file=sys.stderr)
+    if progress:
+        print(f"ident campaign: no wear model for mill '{mill.name}' yet; training one on "
+              f"{samples} simulated recordings (once; cached in {path})", file=sys.stderr)
+    t0 = time.perf_counter()
+    lib = simulate_library(mill, n=samples, random_state=seed, n_jobs=jobs, progress=progress,
+                           bearings=True)
+
+    def say(tid: str) -> None:
+        if progress:
+            print(f"ident campaign: training the wear model of {tid}", file=sys.stderr)
+
+    save_model(train_model(lib, mill, random_state=seed, progress=say), path)
+    if progress:
+        print(f"ident campaign: wear model trained in {time.perf_counter() - t0:.0f} s",
+              file=sys.stderr)
+    return path
 
 
 def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
