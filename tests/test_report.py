@@ -323,6 +323,12 @@ def test_remaining_life_words():
     assert life_words({"status": "worn", "next_limit": "critical", "days_left": 23.4,
                        "days_left_ci95": [12.0, None]}) == \
         "about 23 days to the critical limit (95 %: 12 days to no end)"
+    assert life_words({"status": "worn", "next_limit": "critical", "days_left": 0.0,
+                       "critical_at": "2026-03-01"}) == \
+        "critical limit probably reached since the last recording, on 2026-03-01 by the trend: " \
+        "check now"
+    assert life_words({"status": "good", "next_limit": "worn", "days_left": 1.6e6}) == \
+        "more than 10 years to the worn limit"
 
 
 def test_report_cli_json(store, tmp_path):

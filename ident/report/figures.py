@@ -233,6 +233,7 @@ def mode_trends(series: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray]]
     for ax in (a1, a2):
         ax.grid(alpha=0.3)
         _date_axis(ax, t0_ns)
+        ax.set_xlabel("recording date (UTC)", fontsize=8.5)
         ax.tick_params(labelsize=8)
     if series:
         a2.legend(fontsize=7, ncol=2, loc="best")

@@ -91,6 +91,8 @@ def _forecast(a: Assessment, c: Crossing | None, limit: float, t_ref: int) -> st
 def _days_words(d: float | None) -> str:
     if d is None or not math.isfinite(d):
         return "no end"
+    if d > _FAR_DAYS:
+        return "more than 10 years"
     if d < 1.0:
         return "less than a day"
     return f"{d:.0f} day" + ("" if round(d) == 1 else "s")
@@ -111,8 +113,12 @@ def life_words(part: dict | None) -> str:
     band = ""
     if ci is not None and ci[0] is not None:
         band = f" (95 %: {_days_words(ci[0])} to {_days_words(ci[1])})"
-    if days <= 0:
-        return f"{limit} limit due now{band}"
+    if days <= 0:  # the trend crossed it between the last recording and the report
+        when = part.get(f"{limit}_at")
+        return (f"{limit} limit probably reached since the last recording"
+                + (f", on {when} by the trend" if when else "") + ": check now")
+    if days > _FAR_DAYS:
+        return f"more than 10 years to the {limit} limit"
     return f"about {_days_words(days)} to the {limit} limit{band}"
 
 
@@ -374,6 +380,10 @@ def render(sections: Sequence[MillSection], *, runs: pd.DataFrame, title: str, s
                            "n_found", "n_skipped", "n_done", "n_failed"]].copy()
         for c in ("started_at", "finished_at"):
             r[c] = pd.to_datetime(r[c]).dt.strftime("%Y-%m-%d %H:%M:%S")
+        r = r.rename(columns={"id": "run", "started_at": "started (UTC)",
+                              "finished_at": "finished (UTC)", "mill_name": "mill",
+                              "executor": "ran on", "n_found": "found", "n_skipped":
+                              "already stored", "n_done": "stored", "n_failed": "failed"})
         run_tab = ("<h3>Last campaign runs</h3>" + _table(r.iloc[::-1]))
     return (
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
