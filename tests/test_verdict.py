@@ -145,3 +145,54 @@ def test_diagnosis_json_of_the_fit_alone(mill):
     out = diagnosis_json(mill, None, fit=_fit(mill, C46=(3e-3, 2.8e-3, 3.2e-3)))
     assert list(out["elements"]) == ["C46"] and out["bearings"] == {}
     assert out["elements"]["C46"]["state"] == "good" and out["warnings"] == []
+
+
+# ---- ident diagnose --fit ---------------------------------------------------------------
+def test_read_fit_refuses_what_is_no_fit_of_this_mill(mill, tmp_path):
+    import json
+
+    from ident.cli.diagnose import read_fit
+    from ident.errors import IdentError
+
+    with pytest.raises(IdentError, match="fit result not found: .*nope.json"):
+        read_fit(tmp_path / "nope.json", mill)
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(IdentError, match="bad.json: not a fit result \\(JSON of 'ident fit'\\)"):
+        read_fit(tmp_path / "bad.json", mill)
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(IdentError, match="needs an 'elements' object"):
+        read_fit(tmp_path / "list.json", mill)
+    (tmp_path / "other.json").write_text(json.dumps({"mill": "cold-s5", "elements": {}}))
+    with pytest.raises(IdentError, match="the fit is of mill 'cold-s5', not of 'hsm-f1'"):
+        read_fit(tmp_path / "other.json", mill)
+    (tmp_path / "ok.json").write_text(json.dumps(_fit(mill, C46=(9e-3, 8.7e-3, 9.3e-3))))
+    assert read_fit(tmp_path / "ok.json", mill)["elements"]["C46"]["identified"]
+
+
+@pytest.mark.slow
+def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, tmp_path):
+    """A tiny model (12 simulated recordings) decides nothing reliably; the fit's gap does."""
+    import json
+
+    from ident.cli import main
+    from ident.diagnose import save_model, simulate_library, train_model
+
+    rec = tmp_path / "worn.mcap"
+    assert main(["simulate", "--mill", str(mill_path), "--out", str(rec), "--bars", "2",
+                 "--seed", "4", "--set", "C46.gap=0.010", "--set", "C46.gap_open=0.010",
+                 "--quiet"]) == 0
+    lib = simulate_library(mill, n=12, random_state=11, bearings=True)
+    model = save_model(train_model(lib, mill, random_state=0, max_iter=30), tmp_path / "m.joblib")
+    fit = tmp_path / "fit.json"
+    fit.write_text(json.dumps(_fit(mill, C46=(0.0099, 0.0095, 0.0103))))
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(rec), "--mill", str(mill_path), "--model", str(model),
+                 "--fit", str(fit), "--out", str(out), "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    assert d["elements"]["C46"]["state"] == "critical" and d["elements"]["C46"]["source"] == "fit"
+    assert d["elements"]["C46"]["gap"] == 0.0099
+    assert {v["source"] for k, v in d["elements"].items() if k != "C46"} == {"diagnosis"}
+    assert d["elements"]["C23"]["reason"] == "interval wider than the gap"
+    assert set(d["bearings"]) == {"B23", "B45"}
+    assert all(v["source"] == "diagnosis" for v in d["bearings"].values())
+    assert len(d["features"]["frequencies_hz"]) == 6 and d["transients"]["bites"] == 2

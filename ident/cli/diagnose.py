@@ -3,7 +3,9 @@
 Reads the recording, finds its load-step transients (``ident.segment``),
 extracts the natural-frequency amplitudes and phases against the linear
 baseline and the other transient features (``ident.features``) and applies
-the mill's trained model (``ident.diagnose``).  Without ``--model`` it uses the
+the mill's trained model (``ident.diagnose``); with ``--fit FIT.json`` an element
+whose gap that fit identified takes its state from the gap
+(:mod:`ident.diagnose.verdict`, as the campaign does).  Without ``--model`` it uses the
 cached model of that mill file (``$IDENT_CACHE/models/<sha256>.joblib``),
 training it on first use.
 """
@@ -15,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..diagnose import (Diagnosis, DiagnosticModel, diagnose_features, load_model,
+from ..diagnose import (DiagnosticModel, diagnose_features, diagnosis_json, load_model,
                         model_cache_path)
 from ..errors import IdentError, ModelArtifactError
 from ..features import feature_summary, recording_features, transient_features
@@ -34,6 +36,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("recording", metavar="REC", help="recording (.mcap or .csv)")
     add_common(p)
     p.add_argument("--model", metavar="MODEL", help="trained model artefact (ident train)")
+    p.add_argument("--fit", metavar="FIT.json",
+                   help="the recording's fit (ident fit --out): an element whose gap it "
+                        "identified takes its state from that gap (source 'fit')")
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
                    help="library size when a model has to be trained first")
     p.add_argument("--jobs", type=int, default=2, metavar="N",
@@ -58,30 +63,29 @@ def _cached_model(args: argparse.Namespace, mill: Any) -> tuple[DiagnosticModel,
     return load_model(path, mill), str(path)
 
 
-def diagnosis_json(diag: Diagnosis, mill: Any) -> dict[str, Any]:
-    """The ``elements`` and ``bearings`` blocks of cli.md's ``diagnose`` JSON (plus extras)."""
-    def block(d, size_key: str, extra: dict[str, Any]) -> dict[str, Any]:
-        out = {"state": d.state, "probability": d.probability, size_key: d.size}
-        out.update(extra)
-        out.update({f"{size_key}_ci95": list(d.interval), "probabilities": d.probabilities,
-                    "uncertain": d.uncertain, "novelty": d.novelty,
-                    "explanations": list(d.explanation)})
-        return out
+def read_fit(path: str | Path, mill: Any) -> dict[str, Any]:
+    """A cli.md ``fit`` JSON (``ident fit --out``) of ``mill``, for the verdicts.
 
-    elements = {}
-    for e in mill.elements:
-        d = diag.elements.get(e.id)
-        if d is None:
-            continue
-        extra = {"observable": d.observable}
-        mm = e.gap_mm(d.size)
-        if mm is not None:
-            extra["gap_mm"] = mm
-        elements[e.id] = block(d, "gap", extra)
-    bearings = {b.id: block(diag.bearings[b.id], "clearance",
-                            {"clearance_mm": diag.bearings[b.id].size * 1e3})
-                for b in mill.bearings if b.id in diag.bearings}
-    return {"elements": elements, "bearings": bearings}
+    Raises
+    ------
+    IdentError
+        The file is missing, not JSON, not a fit result or of another mill.
+    """
+    import json
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise IdentError(f"fit result not found: {p}") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise IdentError(f"{p}: not a fit result (JSON of 'ident fit'): {exc}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("elements"), dict):
+        raise IdentError(f"{p}: not a fit result: it needs an 'elements' object "
+                         f"(the JSON of 'ident fit')")
+    if doc.get("mill") not in (None, mill.name):
+        raise IdentError(f"{p}: the fit is of mill '{doc['mill']}', not of '{mill.name}'")
+    return doc
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
 
     mill = load_mill_arg(args)
     rec_path = Path(args.recording)
+    fit = read_fit(args.fit, mill) if args.fit else None
     rec = read_recording(rec_path, mill, warn=False)  # findings go into the JSON's warnings
     # a given model is loaded (cheap) before anything else; without one, the mill's model
     # (cached, or trained below) diagnoses every bearing
@@ -109,18 +114,17 @@ def run(args: argparse.Namespace) -> int:
     fv = recording_features(tf)
     diag = diagnose_features(model, fv)
     out = {"mill": mill.name, "recording": str(rec_path)}
-    out.update(diagnosis_json(diag, mill))
-    out["features"] = feature_summary(tf)
-    out["uncertain"] = any(d.uncertain for d in (*diag.elements.values(),
-                                                  *diag.bearings.values()))
-    warnings = list(diag.warnings) + [i.message for i in rec.issues]
-    out["warnings"] = warnings
+    out.update(diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf),
+                              warnings=[i.message for i in rec.issues]))
+    out["uncertain"] = any(v["uncertain"] for v in (*out["elements"].values(),
+                                                     *out["bearings"].values()))
     out["transients"] = {"bites": int((tf.table["kind"] == "bite").sum()),
                          "releases": int((tf.table["kind"] == "release").sum())}
     out["model"] = {"path": model_path, "samples": model.n_samples,
                     "mill_sha256": model.mill_sha256, "versions": model.versions}
     write_json(out, args.out)
     if not args.quiet:
-        states = ", ".join(f"{k}={v.state}" for k, v in diag.elements.items())
+        states = ", ".join(f"{k}={v['state']}" + (" (fit)" if v["source"] == "fit" else "")
+                           for k, v in out["elements"].items())
         print(f"ident diagnose: {rec_path.name}: {states}", file=sys.stderr)
     return 0
