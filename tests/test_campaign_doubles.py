@@ -9,7 +9,8 @@ is refused with a :class:`~ident.errors.RecordingError`, as the real reader
 refuses a malformed file.  Extra keys trigger the failure modes under test:
 ``crash`` (the worker process dies), ``sleep_s``, ``alloc_mb``, ``fail_stage``,
 ``no_fit`` (no fit stored, as with ``--no-fit``), ``identified`` (the elements whose
-gap the fit identifies; default C46, C57, C12).
+gap the fit identifies; default C46, C57, C12), ``refit_identifies`` (the elements a fit
+started from a neighbour's gaps, ``Settings.starts``, identifies too).
 
 The real pipeline is tested end to end in ``tests/test_campaign_e2e.py``.
 """
@@ -100,11 +101,13 @@ def double_process(path: Path, mill: Mill, settings: Settings) -> RecordingOutco
                                 error_kind="FitError", recording=recording,
                                 segments=tuple(segments), taf=tuple(taf), **base)
     elements = {}
+    starts = dict(settings.starts)  # a refit from a neighbour's gaps
     for e in mill.elements:
         g = float(doc["gaps"].get(e.id, e.gap)) + float(rng.normal(0, 1e-4))
         elements[e.id] = {"gap": g, "gap_ci95": [g - 3e-4, g + 3e-4], "gap_open": 0.0,
                           "gap_mm": e.gap_mm(g), "params": {"a0": 1.0e7, "sigma": 900.0},
-                          "identifiable": e.id in doc.get("identified", ("C46", "C57", "C12"))}
+                          "identifiable": e.id in doc.get("identified", ("C46", "C57", "C12"))
+                          or (e.id in starts and e.id in doc.get("refit_identifies", ()))}
     fit = {"mill": mill.name, "family": settings.family or "g3", "elements": elements,
            "metrics": {"nrmse": float(rng.uniform(0.03, 0.06)), "nrmse_linear": 0.23},
            "solver": {"status": "Solve_Succeeded", "iterations": 57, "seconds": 0.01}}

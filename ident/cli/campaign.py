@@ -52,6 +52,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="library size when the mill's model has to be trained first (300)")
     p.add_argument("--jobs", type=int, default=2, metavar="N",
                    help="simulation processes when the model has to be trained first (2)")
+    p.add_argument("--no-refit", action="store_true",
+                   help="no second pass refitting, from the nearest recording that identified "
+                        "it, each recording whose fit left a gap unidentified")
     p.add_argument("--retry-failed", action="store_true",
                    help="process again the recordings stored as failed")
     p.add_argument("--memory-limit-mb", type=int, metavar="MB",
@@ -77,11 +80,13 @@ def run(args: argparse.Namespace) -> int:
                            scheduler=args.scheduler, settings=settings,
                            progress=not args.quiet, retry_failed=args.retry_failed,
                            memory_limit_mb=args.memory_limit_mb, min_age_s=args.min_age_s,
-                           train=True, train_samples=args.samples, train_jobs=args.jobs)
+                           train=True, train_samples=args.samples, train_jobs=args.jobs,
+                           refit=not args.no_refit)
     write_json(summary.to_dict(), args.out)
     if not args.quiet:
         print(f"ident campaign: {summary.n_found} recordings: {summary.n_done} stored, "
-              f"{summary.n_failed} failed, {summary.n_skipped} already stored "
+              f"{summary.n_failed} failed, {summary.n_skipped} already stored, "
+              f"{summary.n_refit} refitted from a neighbour "
               f"({summary.elapsed_s:.1f} s, {summary.executor}) -> {summary.store}",
               file=sys.stderr)
         for name, err in summary.failed[:20]:

@@ -227,7 +227,8 @@ FINDING_WORDS = {"no_model": "no trained wear model (diagnosis skipped)",
                  "no_absolute_time": "no absolute time in the file (file date used)",
                  "dropout": "telemetry dropout", "gap": "gap in the samples",
                  "clipping": "signal clipped", "flatline": "flat (stuck) signal",
-                 "n_found": "transients found"}
+                 "n_found": "transients found",
+                 "refit_from_neighbour": "refitted from a neighbouring recording's gaps"}
 ERROR_WORDS = {"RecordingError": "bad recording", "MillFileError": "bad mill file",
                "FitError": "the fit failed", "IdentError": "could not be processed",
                "MemoryError": "out of memory", "WorkerCrashed": "the worker process died"}

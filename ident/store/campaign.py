@@ -44,6 +44,7 @@ from .outcome import RecordingOutcome
 from .process import (DEFAULT_LIBRARY_SAMPLES, ProcessFn, Settings, available_stages,
                       describe_error, ensure_model, library_versions, model_path,
                       process_recording, settings_hash)
+from .refit import Refit, neighbour_starts
 from .store import RecordingKey, Store, open_store
 
 __all__ = ["run_campaign", "CampaignSummary", "CampaignError", "default_workers"]
@@ -76,6 +77,9 @@ class CampaignSummary:
         Wall time, s.
     executor : str
         ``local:N`` (N worker processes), ``inline`` or ``dask:ADDR``.
+    n_refit : int
+        Recordings this run refitted from a neighbour (:mod:`ident.store.refit`),
+        not counted in ``n_done``.
     """
 
     run_id: int
@@ -87,6 +91,7 @@ class CampaignSummary:
     failed: tuple[tuple[str, str], ...] = ()
     elapsed_s: float = 0.0
     executor: str = ""
+    n_refit: int = 0
 
     @property
     def throughput_per_min(self) -> float:
@@ -98,6 +103,7 @@ class CampaignSummary:
         return {"run_id": self.run_id, "store": self.store, "found": self.n_found,
                 "skipped": self.n_skipped, "done": self.n_done, "failed": self.n_failed,
                 "failed_recordings": [{"file": f, "error": e} for f, e in self.failed],
+                "refitted": self.n_refit,
                 "elapsed_s": round(self.elapsed_s, 3), "executor": self.executor,
                 "recordings_per_min": round(self.throughput_per_min, 2)}
 
@@ -135,6 +141,8 @@ class _Job:
     source: RecordingSource
     replace: bool = False
     alone: bool = False
+    settings: Settings | None = None  # a refit's (the run's otherwise)
+    refit: tuple[Refit, str] | None = None  # what it refits, and its settings hash
 
 
 # ---- executors ----------------------------------------------------------------------
@@ -292,7 +300,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                  min_age_s: float = 0.0,
                  on_stored: Callable[[str, RecordingOutcome], None] | None = None,
                  train: bool = False, train_samples: int = DEFAULT_LIBRARY_SAMPLES,
-                 train_jobs: int = 2) -> CampaignSummary:
+                 train_jobs: int = 2, refit: bool = True) -> CampaignSummary:
     """Process every recording under ``directory`` into the results store ``store``.
 
     Parameters
@@ -334,6 +342,12 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         real ``process``.
     train_samples, train_jobs : int
         Library size and simulation processes of that training.
+    refit : bool
+        The second pass (:mod:`ident.store.refit`): refit each recording that left a
+        gap unidentified from the nearest recording that identified it; the refit is
+        stored as a new row of that recording (its settings carry the start gaps),
+        which the report reads instead of the first, and the first stays.  A refit
+        that fails is not stored.
 
     Returns
     -------
@@ -382,7 +396,23 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
         if failed_before:
             errors = st.failed_errors(shash)
             failed_before = [(f, errors.get((f, h), "")) for f, h in failed_before]
-        if not todo:
+        by_key = {(s.file_name, s.content_sha256): s for s in sources}
+
+        def pending_refits() -> list[_Job]:
+            if not (refit and settings.fit):
+                return []
+            jobs = []
+            for r in neighbour_starts(st.fit_summaries(shash)):
+                src = by_key.get((r.file_name, r.content_sha256))
+                if src is None:  # no longer under this folder
+                    continue
+                s2 = replace(settings, starts=r.starts)
+                h2 = settings_hash(s2, mill, extra=extra)
+                if (r.file_name, r.content_sha256) not in st.stored_keys(h2):
+                    jobs.append(_Job(src, settings=s2, refit=(r, h2)))
+            return jobs
+
+        if not todo and not pending_refits():
             run_id = st.start_run(directory=str(root), mill=mill, settings_hash=shash,
                                   settings=settings.to_dict(), executor="none",
                                   host=socket.gethostname(), versions=library_versions(),
@@ -398,7 +428,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                               settings=settings.to_dict(), executor=ex.name,
                               host=socket.gethostname(), versions=library_versions(),
                               n_found=len(sources), n_skipped=n_skipped)
-        counts = {"done": 0, "failed": 0}
+        counts = {"done": 0, "failed": 0, "refit": 0}
         failed_now: list[tuple[str, str]] = []
         from tqdm import tqdm
 
@@ -418,6 +448,32 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
                     on_stored(job.source.file_name, outcome)
 
             _drive(ex, todo, mill, settings, store_one)
+            refits = deque(pending_refits())  # the second pass, on what is stored now
+            rbar = tqdm(total=len(refits), unit="rec", desc="refit from neighbours",
+                        file=sys.stderr, disable=not progress or not refits,
+                        dynamic_ncols=True)
+
+            def store_refit(job: _Job, outcome: RecordingOutcome) -> None:
+                r, h2 = job.refit
+                rbar.update(1)
+                if not outcome.ok:  # the first fit stays: a failed refit is only said
+                    if progress:
+                        print(f"ident campaign: refit of {r.file_name} from {r.neighbour} "
+                              f"failed: {outcome.error}", file=sys.stderr)
+                    return
+                note = {"stage": "fit", "kind": "refit_from_neighbour", "channel": None,
+                        "t_start": None, "t_end": None, "fatal": False,
+                        "message": f"refitted from the gaps of {r.neighbour} (the first fit "
+                                   f"did not identify {', '.join(r.missing)})"}
+                outcome = replace(outcome, quality=tuple(outcome.quality) + (note,))
+                key = RecordingKey(job.source.file_name, job.source.content_sha256, h2)
+                if _write(st, run_id, key, outcome, mill=mill, job=job, root=root).ok:
+                    counts["refit"] += 1
+
+            try:
+                _drive(ex, refits, mill, settings, store_refit)
+            finally:
+                rbar.close()
             status = "finished"
         finally:
             bar.close()
@@ -428,7 +484,7 @@ def run_campaign(directory: str | os.PathLike, mill: Mill | str | os.PathLike, s
             run_id=run_id, store=st.url, n_found=len(sources), n_skipped=n_skipped,
             n_done=counts["done"], n_failed=counts["failed"],
             failed=tuple(sorted(failed_before + failed_now)),
-            elapsed_s=time.perf_counter() - t_begin, executor=ex.name)
+            elapsed_s=time.perf_counter() - t_begin, executor=ex.name, n_refit=counts["refit"])
     finally:
         st.close()
 
@@ -462,7 +518,7 @@ def _drive(ex, todo: deque[_Job], mill: Mill, settings: Settings,
 
     def submit(job: _Job) -> bool:
         try:
-            inflight[ex.submit(str(job.source.path), mill, settings)] = job
+            inflight[ex.submit(str(job.source.path), mill, job.settings or settings)] = job
         except cf.process.BrokenProcessPool:  # a worker died since the last look
             return False
         return True

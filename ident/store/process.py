@@ -63,6 +63,10 @@ class Settings:
         with a ``no_model`` finding.
     taf_window_s : float
         Window after each bite searched for the peak torque, s.
+    starts : tuple of (str, float)
+        Start the fit at these gaps (rad, ``(element, gap)`` pairs; the others at the
+        mill file's): the campaign's refit from a neighbouring recording
+        (:func:`ident.store.campaign.neighbour_starts`); empty = the mill file's gaps.
     """
 
     family: str | None = None
@@ -72,9 +76,17 @@ class Settings:
     diagnose: bool = True
     model: str | None = None
     taf_window_s: float = 1.0
+    starts: tuple[tuple[str, float], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The settings as JSON-able values; ``starts`` only when given, so that the hash
+        of every first-pass setting is what it was before refits existed."""
+        d = asdict(self)
+        if not d["starts"]:
+            del d["starts"]
+        else:
+            d["starts"] = [list(x) for x in d["starts"]]
+        return d
 
 
 def settings_hash(settings: Settings, mill: Mill, *, extra: Mapping[str, Any] | None = None) -> str:
@@ -326,6 +338,8 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
 
             use = segs if settings.max_transients is None else segs[:settings.max_transients]
             kw = {} if settings.family is None else {"family": settings.family}
+            if settings.starts:
+                kw["starts"] = [dict(settings.starts)]
             windows = stage("fit", lambda: windows_from_recording(rec, mill, use))
             parts["fit"] = jsonable(stage("fit", lambda: fit_gaps(mill, windows, **kw)).to_dict())
             if settings.per_transient:

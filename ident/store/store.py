@@ -246,6 +246,32 @@ class Store:
                 r.settings_hash == settings_hash, r.status == "failed")).all()
         return {(f, h): e or "" for f, h, e in rows}
 
+    def fit_summaries(self, settings_hash: str) -> list[dict[str, Any]]:
+        """The whole-recording fits of the recordings stored ``done`` with these settings.
+
+        Returns
+        -------
+        list of dict
+            ``{"file_name", "content_sha256", "t0_ns", "gaps": {element: rad},
+            "identified": set of element ids}`` per recording with a fit, in
+            ``(t0_ns, file_name)`` order.
+        """
+        r, e = S.recordings.c, S.element_results.c
+        q = (sa.select(r.file_name, r.content_sha256, r.t0_ns, e.element, e.gap, e.identifiable)
+             .join(S.element_results, e.recording_pk == r.id)
+             .where(r.settings_hash == settings_hash, r.status == "done",
+                    e.transient_idx.is_(None)))
+        out: dict[tuple[str, str], dict[str, Any]] = {}
+        with self.engine.connect() as conn:
+            for f, h, t0, el, gap, ident_ in conn.execute(q):
+                d = out.setdefault((f, h), {"file_name": f, "content_sha256": h, "t0_ns": t0,
+                                            "gaps": {}, "identified": set()})
+                if gap is not None:
+                    d["gaps"][el] = float(gap)
+                if ident_:
+                    d["identified"].add(el)
+        return sorted(out.values(), key=lambda d: (d["t0_ns"] or 0, d["file_name"]))
+
     def count(self, table: str = "recordings", **where: Any) -> int:
         """Number of rows in ``table`` matching ``column=value`` conditions."""
         t = S.metadata.tables[table]
