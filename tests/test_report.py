@@ -366,3 +366,23 @@ def test_gap_panel_axis_labels_and_range():
     assert lo == 0.0 and 4.8 < hi <= 2 * 4.8  # both limits shown, a wild rejected fit capped
     assert F._y_range(F.GapPanel(**{**p.__dict__, "y": np.array([1.0, 1.5, 7.0]),
                                     "hi": np.array([1.1, 1.6, 7.5])}))[1] >= 7.5
+
+
+def test_identified_gaps_decide_over_the_models_verdicts(tmp_path, mill):
+    """The model calls C46 (identified, good) critical and C23 (never identified) worn:
+    the fit's gaps decide C46, the model decides C23."""
+    import sqlalchemy as sa
+
+    from ident.store import schema as S
+
+    for i in range(4):
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=i, seed=i)
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    d = S.diagnoses.c
+    with sa.create_engine(url).begin() as c:
+        c.execute(S.diagnoses.update().where(d.target == "C46").values(state="critical"))
+        c.execute(S.diagnoses.update().where(d.target == "C23").values(state="worn"))
+    a = {x.id: x for x in analyse_mill("hsm-f1", load_results(url), figures=False).assessments}
+    assert a["C46"].status == "good" and a["C46"].classifier == "critical"
+    assert a["C23"].status == "worn" and a["C23"].reason == "diagnosed worn"

@@ -21,6 +21,9 @@ recordings give a trend, otherwise the last value.
 * ``worn`` (amber): the current value is at or above the worn limit, the latest
   verdict says ``worn``, or the 95 % interval of the time the trend reaches a
   limit begins within ``horizon_days`` of the last recording.
+
+Where fits identified an element's gap, the values are those gaps and the
+verdicts of the trained model do not change its status (they are shown).
 * ``good`` (green): none of these.  ``unknown`` (grey): no evidence at all (no
   identified fit and no verdict).
 
@@ -238,7 +241,10 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
         t_last, now, now_lo, now_hi = float(days[i]), float(y[i]), float(lo[i]), float(hi[i])
     else:
         t_last, now, now_lo, now_hi = math.nan, math.nan, math.nan, math.nan
-    status, reason = _status(now, worn, critical, classifier, w_at, c_at,
+    # identified gaps are the most accurate evidence: where fits identified the gap,
+    # the trained model's verdicts are shown but do not decide the status
+    decisive = None if ev.source == "fit" and ok.any() else classifier
+    status, reason = _status(now, worn, critical, decisive, w_at, c_at,
                              t_last if math.isfinite(t_last) else 0.0, horizon)
     if status == "unknown" and ev.rejected_t.size:
         reason = f"no evidence: the {ev.rejected_t.size} fit(s) did not identify the gap"

@@ -56,7 +56,9 @@ class Settings:
         Fit at most this many transients per recording (the first ones), to bound
         the cost of long recordings; None = all.
     diagnose : bool
-        Run the wear diagnosis.
+        Run the wear diagnosis (the trained model).  Without it, or without a model,
+        the elements whose gap the fit identified still get their verdict from that
+        gap (:func:`ident.diagnose.diagnosis_json` of the fit alone).
     model : str or None
         Trained wear model for the diagnosis; None = the mill's cached model
         (``ident.diagnose.model_cache_path``); without one the diagnosis is skipped
