@@ -117,14 +117,20 @@ class FeatureOptions:
 
     Notes
     -----
-    The default pencil decimates the 2 kHz torque by 8 (250 Hz, above twice the
-    81 Hz mode): on :func:`~ident.features.spectral.benchmark_estimators`' +-3 %
-    case it is as accurate as by 4 (0.4 % / 0.3 deg median) at a quarter of the
-    cost (0.6 ms per 0.5 s window).
+    The default pencil decimates to about three samples per period of the
+    mill's highest mode (``samples_per_period=3``): hsm-f1's 2 kHz torque by 8
+    (250 Hz, above twice the 81 Hz mode) -- on
+    :func:`~ident.features.spectral.benchmark_estimators`' +-3 % case as
+    accurate as by 4 (0.4 % / 0.3 deg median) at a quarter of the cost (0.6 ms
+    per 0.5 s window) -- and cold-s5's by 4 (500 Hz for its 138 Hz mode).  The
+    decimated rate follows the mill and the recording's rate, not a constant
+    that suits one of them (a fixed 8 aliased cold-s5's 138 Hz mode, and on a
+    1 kHz recording hsm-f1's 81 Hz one).
     """
 
     window_s: float = 0.5
-    estimator: Any = field(default_factory=lambda: MatrixPencil(decimate=8))
+    estimator: Any = field(default_factory=lambda: MatrixPencil(decimate=8,
+                                                                 samples_per_period=3.0))
     harmonics: tuple[int, ...] = (2, 3)
     taf_window_s: float = 0.8
     dwell_s: float = 0.3

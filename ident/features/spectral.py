@@ -149,21 +149,44 @@ class MatrixPencil:
         Relative frequency tolerance for matching a pole to a given frequency.
     decimate : int
         Keep every ``decimate``-th sample (the pencil's cost grows with the
-        window's square; 2 kHz down to 500 Hz still holds 81 Hz).
+        window's square; 2 kHz down to 500 Hz still holds 81 Hz).  Never more
+        than keeps the highest given frequency below 0.4 of the decimated rate
+        (``rate_hz / (2.5 * max(freqs_hz))``): beyond that it would alias.
     max_damping : float
         Poles more damped than this (ratio) are not modes (the step's own
         edge, noise) and are never matched.
+    samples_per_period : float or None
+        When set, the decimation is derived from the window instead of
+        ``decimate``: ``floor(rate_hz / (samples_per_period * max(freqs_hz)))``,
+        so that the decimated rate is about the same for every recording rate
+        and every mill (3: hsm-f1's 81 Hz mode at 2 kHz gives 8, its 250 Hz;
+        cold-s5's 138 Hz mode gives 4 at 2 kHz, 12 at 5 kHz, 2 at 1 kHz).  A
+        fixed 8 put cold-s5's 138 Hz mode above the 125 Hz Nyquist frequency at
+        2 kHz, and hsm-f1's 81 Hz one above 62.5 Hz at 1 kHz.
     """
 
     order: int = 16
     tolerance: float = 0.12
     decimate: int = 4
     max_damping: float = 0.45
+    samples_per_period: float | None = None
+
+    def decimation(self, rate_hz: float, freqs_hz: np.ndarray) -> int:
+        """Samples kept one in how many, for this rate and these frequencies (Hz)."""
+        f = np.asarray(freqs_hz, dtype=float)
+        f_max = float(np.max(f)) if f.size and np.all(np.isfinite(f)) else 0.0
+        if f_max <= 0.0:
+            return max(int(self.decimate), 1)
+        cap = max(int(np.floor(rate_hz / (2.5 * f_max) + 1e-9)), 1)
+        if self.samples_per_period is not None:
+            return max(int(np.floor(rate_hz / (float(self.samples_per_period) * f_max)
+                                    + 1e-9)), 1)
+        return min(max(int(self.decimate), 1), cap)
 
     def estimate(self, x: np.ndarray, rate_hz: float, freqs_hz: np.ndarray,
                  damping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, dtype=float)
-        q = max(int(self.decimate), 1)
+        q = self.decimation(rate_hz, freqs_hz)
         if q > 1:
             # light anti-alias: box average over q samples, then pick
             k = np.ones(q) / q
