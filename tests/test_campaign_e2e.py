@@ -29,9 +29,21 @@ def sample(tmp_path_factory, mill):
 
 @pytest.fixture(scope="module")
 def stored(sample, mill, tmp_path_factory):
+    """The campaign, diagnosing with the mill's cached model (as ``ident campaign`` trains
+    it on first use; here a tiny one on torque channels, as the sample has no
+    accelerometers), which the CLI rerun below finds too; removed afterwards."""
+    from ident.diagnose import model_cache_path, save_model, simulate_library, train_model
+
+    cached = model_cache_path(mill)
+    if "diagnose" in available_stages():
+        lib = simulate_library(mill, n=12, random_state=3, bearings=False)
+        save_model(train_model(lib, mill, random_state=0, max_iter=30), cached)
     url = f"sqlite:///{tmp_path_factory.mktemp('e2e_db')}/results.db"
-    summary = run_campaign(sample.folder, mill, url, workers=2, progress=False)
-    return url, summary
+    try:
+        summary = run_campaign(sample.folder, mill, url, workers=2, progress=False)
+        yield url, summary
+    finally:
+        cached.unlink(missing_ok=True)
 
 
 def test_good_stored_bad_failed(sample, stored):
@@ -87,7 +99,7 @@ def test_measured_taf_matches_simulated(sample, stored):
     assert n == 3 * 2 * 4  # recordings x bars x torque channels
 
 
-def test_stages_installed_or_said_so(stored):
+def test_stages_installed_or_said_so(stored, mill):
     url, _ = stored
     res = load_results(url)
     stages = available_stages()
@@ -102,6 +114,14 @@ def test_stages_installed_or_said_so(stored):
         er = res["element_results"]
         assert set(er["element"]) >= {"C46", "C57"}
         assert res["fits"]["solver_status"].notna().all()
+    if "diagnose" in stages:  # one verdict per element of every stored recording
+        assert not (q["kind"] == "no_model").any()
+        d = res["diagnoses"]
+        done = res["recordings"].query("status == 'done'")["id"]
+        assert set(d["recording_pk"]) == set(done)
+        assert set(d["source"]) <= {"fit", "diagnosis"} and d["source"].notna().all()
+        per = d[d["kind"] == "element"].groupby("recording_pk")["target"].nunique()
+        assert (per == len(mill.elements)).all()
 
 
 def test_rerun_redoes_nothing_and_cli_exit_3(sample, stored, mill_path, capsys):
