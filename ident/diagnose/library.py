@@ -18,6 +18,11 @@ sample draws, independently,
   bearings' stiffnesses (+-10 %), damping (+-30 %) and housing preload
   (+-20 %), the bars' number, static torques, rise times, rolling and idle
   times, the idle load, the load fluctuation and the sensors' SNR;
+* optionally (``LibraryRanges.drag_fraction``, 0 by default) a bearing-friction
+  drag on the masses upstream of the spindles (:class:`IdleDrag`), which holds the
+  couplings and meshes on their drive flanks between bars as a real stand's
+  friction does (``validation/diagnose_study.py`` measures what it does on the
+  independent plant simulator);
 
 simulates the torsion with one compiled integrator per process
 (:class:`LibrarySimulator`: the stiffness and damping nuisance enter as model
@@ -58,8 +63,9 @@ from ..units import to_si_factor
 from .radial import simulate_radial
 from .states import bearing_state, element_state
 
-__all__ = ["Nuisance", "LibraryRanges", "SampleSpec", "Library", "LibrarySimulator", "draw_sample",
-           "simulate_sample", "recording_from_devices", "simulate_library", "sample_features"]
+__all__ = ["Nuisance", "IdleDrag", "drag_masses", "LibraryRanges", "SampleSpec", "Library",
+           "LibrarySimulator", "draw_sample", "simulate_sample", "recording_from_devices",
+           "simulate_library", "sample_features"]
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,50 @@ class Nuisance:
 
 
 @dataclass(frozen=True)
+class IdleDrag:
+    """Model effect: a constant drag (bearing friction) opposing rotation on some masses.
+
+    Parameters (prefixed ``drag@mill.{ID}.``): ``torque`` per mass, N*m reduced,
+    > 0 opposing the rotation.  On the masses upstream of the spindles it keeps the
+    couplings, meshes and shafts on their drive flanks between bars while the
+    spindles float in their clearance -- as a rolling mill's bearings and seals do,
+    and as :mod:`validation.plantsim` models a stand (its "idle friction").  A bite
+    then shows nothing of those gaps; a release, whose ringing reverses the torque,
+    still does.
+    """
+
+    mass_ids: tuple[str, ...]
+    name: str = "drag"
+    location: str = "mill"
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(f"{m}.torque" for m in self.mass_ids)
+
+    @property
+    def param_defaults(self) -> tuple[float, ...]:
+        return tuple(0.0 for _ in self.param_names)
+
+    def terms(self, ctx: Any, p: Any) -> EffectTerms:
+        ids = [m.id for m in ctx.mill.masses]
+        rows = [0.0] * len(ids)
+        for i, mid in enumerate(self.mass_ids):
+            rows[ids.index(mid)] = -p[i]
+        return EffectTerms(mass_torque=ca.vertcat(*rows))
+
+    def params(self, drag: dict[str, float]) -> dict[str, float]:
+        """Parameter values of per-mass drags (N*m; masses not named drag nothing)."""
+        return {f"{self.name}@{self.location}.{m}.torque": float(drag.get(m, 0.0))
+                for m in self.mass_ids}
+
+
+def drag_masses(mill: Mill) -> tuple[str, ...]:
+    """Masses that bearing friction drags: all but the load masses (the roll stacks)."""
+    load = set(mill.load.masses)
+    return tuple(m.id for m in mill.masses if m.id not in load)
+
+
+@dataclass(frozen=True)
 class LibraryRanges:
     """Ranges of the library's random draws.
 
@@ -142,6 +192,19 @@ class LibraryRanges:
         Relative half-ranges of the elements' (and bearings') stiffness and damping.
     preload : float
         Relative half-range of the housing preload.
+    drag : (float, float)
+        Total idle drag (bearing friction, :class:`IdleDrag`) over the nominal
+        torque, drawn in a fraction ``drag_fraction`` of the samples and spread
+        over :func:`drag_masses` in proportion to ``J * U(0.5, 1.5)``.  It is
+        drawn from each sample's own seed, so that the other draws of a library
+        do not depend on it.
+    drag_fraction : float
+        0 by default: see ``validation/diagnose_study.py`` for what it does to
+        the diagnosis of independent plant recordings.
+    drag_lead_s, drag_idle_s : float
+        Extra idle time before the first bite and before every later one of a
+        sample with a drag, s (the simulation starts at rest, and the speed loop
+        settles in about 1 s).
     """
 
     faults: tuple[float, ...] = (0.2, 0.4, 0.3, 0.1)
@@ -160,6 +223,10 @@ class LibraryRanges:
     stiffness: float = 0.10
     damping: float = 0.30
     preload: float = 0.20
+    drag: tuple[float, float] = (0.005, 0.05)
+    drag_fraction: float = 0.0
+    drag_lead_s: float = 1.5
+    drag_idle_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -175,6 +242,7 @@ class SampleSpec:
     scenario: Scenario
     snr_db: float
     seed: int
+    drag: dict[str, float] = field(default_factory=dict)
 
     def truth(self, mill: Mill) -> dict[str, Any]:
         """Targets and draws as one flat row."""
@@ -191,6 +259,7 @@ class SampleSpec:
         row["snr_db"] = self.snr_db
         row["seed"] = self.seed
         row["idle_load"] = self.scenario.idle_torque
+        row["drag"] = float(sum(self.drag.values()))
         return row
 
 
@@ -251,9 +320,29 @@ def draw_sample(mill: Mill, rng: np.random.Generator, *,
                          lead_s=ranges.lead_s, fluctuation=float(rng.uniform(*ranges.fluctuation)))
     idle = float(rng.uniform(*ranges.idle_load)) if rng.random() < ranges.idle_fraction else 0.0
     sc = dataclasses.replace(sc, idle_torque=idle * nom)
+    snr = float(rng.uniform(*ranges.snr_db))
+    seed = int(rng.integers(2 ** 31))
+    drag: dict[str, float] = {}
+    if ranges.drag_fraction > 0:  # from the sample's own seed: the library's stream stays
+        r2 = np.random.default_rng((seed, 0xD2A6))
+        if r2.random() < ranges.drag_fraction:
+            ms = drag_masses(mill)
+            w = np.array([mill.masses[mill.mass_index(m)].J for m in ms]) * \
+                r2.uniform(0.5, 1.5, len(ms))
+            total = float(r2.uniform(*ranges.drag)) * nom
+            drag = {m: float(total * wi / w.sum()) for m, wi in zip(ms, w)}
+            # the simulation starts at rest without it: the speed loop takes the drag up
+            # before the first bite; and the pauses are longer, so that the loop has
+            # recovered from each release's overspeed and the drag has closed the
+            # couplings again before the next bite (plantsim idles 1.5-3 s)
+            lead, extra = float(ranges.drag_lead_s), float(ranges.drag_idle_s)
+            sc = dataclasses.replace(
+                sc, duration=sc.duration + lead + extra * (len(sc.bars) - 1),
+                bars=tuple(dataclasses.replace(b, t_bite=b.t_bite + lead + k * extra,
+                                               t_release=b.t_release + lead + k * extra)
+                           for k, b in enumerate(sc.bars)))
     return SampleSpec(gaps=gaps, gap_open=opens, clearances=cl, k_scale=ks, c_scale=cs,
-                      bearing_params=bp, scenario=sc, snr_db=float(rng.uniform(*ranges.snr_db)),
-                      seed=int(rng.integers(2 ** 31)))
+                      bearing_params=bp, scenario=sc, snr_db=snr, seed=seed, drag=drag)
 
 
 def recording_from_devices(devices: Iterable[RawDevice], mill: Mill) -> Recording:
@@ -306,6 +395,7 @@ class LibrarySimulator:
         self.max_step = float(max_step)
         self.compile = bool(compile)
         self.effect = Nuisance(mill.element_ids)
+        self.drag = IdleDrag(drag_masses(mill))
         self._built: tuple[Any, Any] | None = None
 
     def __getstate__(self) -> dict[str, Any]:
@@ -315,7 +405,8 @@ class LibrarySimulator:
 
     def _build(self) -> tuple[Any, Any]:
         if self._built is None:
-            drv = build_driveline(self.mill, ModelOptions(bearings=False, effects=(self.effect,)))
+            effects = (self.effect, self.drag) if self.drag.mass_ids else (self.effect,)
+            drv = build_driveline(self.mill, ModelOptions(bearings=False, effects=effects))
             T = 1.0 / self.rate_hz
             n_sub = max(1, math.ceil(T / self.max_step - 1e-9))
             st = make_stepper(drv, interval=T, n_sub=n_sub, compile=self.compile,
@@ -331,6 +422,8 @@ class LibrarySimulator:
             p[f"{e.id}.gap_open"] = spec.gap_open[e.id]
         p.update(self.effect.params(self.mill, spec.gaps, spec.gap_open, spec.k_scale,
                                     spec.c_scale))
+        if self.drag.mass_ids:
+            p.update(self.drag.params(spec.drag))
         return p
 
     def simulate(self, spec: SampleSpec) -> SimResult:

@@ -1,0 +1,376 @@
+"""Train, diagnose and run the discrepancy workflow on both mills, against independent truth.
+
+``python -m validation.diagnose_study --per-mill 8`` does, for each mill
+(``hsm-f1``, the branched 7-mass hot stand, and ``cold-s5``, the unbranched
+5-mass cold stand):
+
+1. **train**: the mill's diagnosis model as ``ident diagnose`` finds it (the
+   cache, :func:`ident.diagnose.model_cache_path`), trained as ``ident train``
+   does when it is missing (``--samples``, default 300, seed 0);
+2. **diagnose**: ``--per-mill`` recordings of the independent plant simulator
+   (:mod:`validation.plantsim`, not ident's model), each diagnosed by the
+   ``ident diagnose`` command itself (in this process, :func:`ident.cli.main`),
+   and its states scored against the truth's;
+3. **discrepancy** (``--discrepancy``): ``ident discrepancy`` on two recordings
+   per mill with the designed gaps (4 bars, seed ``first_seed + 999``): a control
+   -- nothing the mill file lacks beyond what an independent plant always has
+   (idle friction, its recorder) -- where the right answer is ``null``; and the
+   same plant with a softening knee on the loaded spindle nearest the rolls
+   (:func:`hidden_softening`), where it is ``softening_stiffness@`` that spindle.
+
+Truth of recording ``k`` (seed ``first_seed + k``, ``--first-seed`` default 500):
+per element a state is drawn (the number of faulty elements 0-3 with the
+library's odds, each worn or critical with equal odds; the rest good), then a gap
+uniform inside that state's band of :func:`ident.diagnose.states.element_state`
+(good ``[0, gap_worn]`` -- at least 0.1 ``gap_worn`` -- worn ``(gap_worn,
+gap_critical]``, critical ``(gap_critical, 1.5 gap_critical]``), and per bearing a
+state drawn with equal odds and a clearance inside its band of
+:func:`~ident.diagnose.states.bearing_state` (good from 0.1 mm).  Every band keeps
+10 % of its width clear of the limits, so that a state is not decided by a hair.
+The plant draws everything else (load, ramps, open parts, noise, recorder rate
+1-5 kHz, accelerometer rate 10-25 kHz).  Recordings have ``--bars`` bars (default
+5), every other one CSV.
+
+Figures per mill: element-state accuracy (all elements; and only those a torque
+channel sees), recall of worn and of critical elements (the diagnosis names the
+same state), recall of faulty ones (worn or critical diagnosed as either), the
+false-alarm rate on good elements, bearing state accuracy, and what ``ident
+discrepancy`` named with its held-out nrmse before and after.  ``--drag-fraction F``
+trains the model on a library with an idle drag (bearing friction upstream of the
+spindles, :class:`ident.diagnose.library.IdleDrag`) in a fraction ``F`` of its
+samples instead of ``ident train``'s.  ``--json FILE`` writes one line per recording.
+
+Measured (2026-12-02, seeds 500-515, 16 recordings per mill, 300-sample models):
+
+==============================  ===============  ===============  ===============  ===============
+                                hsm-f1           cold-s5          hsm-f1, drag 0.5 cold-s5, drag 0.5
+==============================  ===============  ===============  ===============  ===============
+element state accuracy          75/96  (78 %)    51/64 (80 %)     83/96 (86 %)     52/64 (81 %)
+worn recall                     1/8    (12 %)    6/11  (55 %)     2/8   (25 %)     5/11  (45 %)
+critical recall                 2/13   (15 %)    3/10  (30 %)     9/13  (69 %)     7/10  (70 %)
+worn+critical said not good     5/21   (24 %)    10/21 (48 %)     13/21 (62 %)     14/21 (67 %)
+good said worn/critical         3/75   (4 %)     1/43  (2 %)      3/75  (4 %)      3/43  (7 %)
+bearing state accuracy          21/32  (66 %)    14/16 (88 %)     25/32 (78 %)     16/16 (100 %)
+==============================  ===============  ===============  ===============  ===============
+
+With ``ident train``'s library both mills find the spindles (floating in their
+clearance, open at a bite: hsm-f1 C46/C57 5/5, cold-s5 C45 4/4, and cold-s5's lightly
+loaded C34 5/5) and miss the couplings and meshes upstream of them (hsm-f1 C12-C45 0/16,
+cold-s5 C12/C23 1/12): the plant's idle friction holds those on their drive flanks
+between bars, so a bite shows nothing of their gaps, while the library opens them at
+random.  With an idle drag in half the library (``--drag-fraction 0.5``) they are found
+from the releases: hsm-f1 C12-C45 8/16, cold-s5 C12/C23 5/12.  ``ident discrepancy``
+answered null on the controls of both mills (3 seeds each), named
+``softening_stiffness@C46`` on hsm-f1 (3/3), and null on cold-s5's softening C45 (3/3)
+although its refit ranked first (held-out nrmse 0.51 -> 0.049, knee and stiffness ratio
+recovered): C34 and C45 are in series around the light spindle mass Q4, their
+signatures are alike (C34 scores higher), and the decision rule names no location its
+signature does not lead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+MILLS = {"hsm-f1": ROOT / "data/mills/hsm-f1.toml", "cold-s5": ROOT / "data/mills/cold-s5.toml"}
+#: odds of 0, 1, 2, 3 faulty elements per recording (the library's, LibraryRanges.faults)
+FAULT_ODDS = (0.2, 0.4, 0.3, 0.1)
+CRITICAL_SPAN = 1.5
+MARGIN = 0.1
+
+
+def _in_band(rng: np.random.Generator, lo: float, hi: float) -> float:
+    w = hi - lo
+    return float(rng.uniform(lo + MARGIN * w, hi - MARGIN * w))
+
+
+def draw_truth(mill, rng: np.random.Generator) -> tuple[dict[str, float], dict[str, float],
+                                                         dict[str, str], dict[str, str]]:
+    """Gaps (rad), clearances (m) and their states for one recording (see the module doc)."""
+    from ident.diagnose.states import bearing_state, element_state
+
+    p = np.asarray(FAULT_ODDS) / sum(FAULT_ODDS)
+    n = min(int(rng.choice(p.size, p=p)), len(mill.elements))
+    faulty = set(rng.choice(len(mill.elements), n, replace=False).tolist()) if n else set()
+    gaps, states = {}, {}
+    for i, e in enumerate(mill.elements):
+        if i in faulty and rng.random() < 0.5:
+            g = _in_band(rng, e.gap_worn, e.gap_critical)
+        elif i in faulty:
+            g = _in_band(rng, e.gap_critical, CRITICAL_SPAN * e.gap_critical)
+        else:
+            g = _in_band(rng, 0.1 * e.gap_worn, e.gap_worn)
+        gaps[e.id] = g
+        states[e.id] = element_state(e, g).value
+    cl, bstates = {}, {}
+    for b in mill.bearings:
+        edges = (1.0e-4, b.clearance_worn, b.clearance_critical,
+                 CRITICAL_SPAN * b.clearance_critical)
+        c = int(rng.integers(3))
+        cl[b.id] = _in_band(rng, edges[c], edges[c + 1])
+        bstates[b.id] = bearing_state(b, cl[b.id]).value
+    return gaps, cl, states, bstates
+
+
+def hidden_softening(mill) -> tuple[Any, str]:
+    """The mill with a softening knee on its most loaded spindle nearest the rolls.
+
+    Knee 40 % of the element's static deflection at the plant's nominal torque past
+    contact, stiffness beyond it 0.6 ``k`` (seed Fig. 1b): what ``ident discrepancy``,
+    reading the plain mill file, should name ``softening_stiffness@ID``.
+    """
+    from validation import plantsim
+
+    frac = plantsim.load_fractions(mill)
+    dist = plantsim._distance_to_load(mill)
+    near = min(mill.elements, key=lambda e: (dist[e.id], -abs(frac[e.id])))
+    knee = 0.4 * abs(frac[near.id]) * plantsim.nominal_level(mill) / near.k
+    return mill.with_overrides({f"{near.id}.stiffness": "softening", f"{near.id}.knee": knee,
+                                f"{near.id}.k_after": 0.6 * near.k}), near.id
+
+
+def make_case(mill, seed: int, directory: Path, *, n_bars: int, truth_gaps: bool = True,
+              plant_mill: Any = None) -> tuple[Path, dict[str, Any]]:
+    """Write one plantsim recording with drawn (or, ``truth_gaps=False``, designed) wear.
+
+    ``plant_mill`` is the mill the plant simulates (default ``mill``: a variant with
+    an effect the mill file lacks, for the discrepancy workflow).
+    """
+    from validation import plantsim
+
+    rng = np.random.default_rng(seed)
+    if truth_gaps:
+        gaps, cl, states, bstates = draw_truth(mill, rng)
+    else:
+        from ident.diagnose.states import bearing_state, element_state
+
+        gaps = {e.id: e.gap for e in mill.elements}
+        cl = {b.id: b.clearance for b in mill.bearings}
+        states = {e.id: element_state(e, e.gap).value for e in mill.elements}
+        bstates = {b.id: bearing_state(b, cl[b.id]).value for b in mill.bearings}
+    fmt = "csv" if seed % 2 else "mcap"
+    path = directory / f"{mill.name}-{seed}.{fmt}"
+    plant = mill if plant_mill is None else plant_mill
+    draw = plantsim.draw_plant(plant, np.random.default_rng(seed + 10_000), gaps=gaps,
+                               clearances=cl, n_bars=n_bars)
+    plantsim.write_plant(plantsim.simulate_plant(plant, draw), path)
+    return path, {"seed": seed, "path": str(path), "gaps": gaps, "clearances": cl,
+                  "states": states, "bearing_states": bstates, "rate_hz": draw.rate_hz}
+
+
+def run_cli(argv: list[str]) -> tuple[int, dict[str, Any] | None, str]:
+    """``ident ARGV`` in this process: exit code, its JSON (``--out`` is added), stderr."""
+    from ident.cli import main
+
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "out.json"
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            code = main(list(argv) + ["--out", str(out)])
+        data = json.loads(out.read_text()) if out.exists() else None
+    return code, data, err.getvalue()
+
+
+def ensure_model(mill, mill_path: Path, *, samples: int, jobs: int,
+                 drag_fraction: float = 0.0) -> tuple[Path, float]:
+    """The cached model of the mill (trained like ``ident train`` when missing); seconds.
+
+    With ``drag_fraction > 0`` the library has an idle drag in that fraction of its
+    samples (:class:`ident.diagnose.library.IdleDrag`), trained by the library API
+    into ``<cache>.drag<F>.joblib`` beside the cached model.
+    """
+    from ident.diagnose import load_model, model_cache_path
+    from ident.errors import ModelArtifactError
+
+    path = model_cache_path(mill)
+    if drag_fraction > 0:
+        path = path.with_name(f"{path.stem}.drag{drag_fraction:g}.joblib")
+    t0 = time.perf_counter()
+    try:
+        load_model(path, mill)
+        return path, 0.0
+    except ModelArtifactError:
+        pass
+    if drag_fraction > 0:
+        from ident.diagnose import save_model, simulate_library, train_model
+        from ident.diagnose.library import LibraryRanges
+
+        lib = simulate_library(mill, n=samples, random_state=0, n_jobs=jobs,
+                               ranges=LibraryRanges(drag_fraction=drag_fraction))
+        save_model(train_model(lib, mill, random_state=0), path)
+        return path, time.perf_counter() - t0
+    from ident.cli import main
+
+    with contextlib.redirect_stdout(io.StringIO()):  # its JSON summary
+        code = main(["train", "--mill", str(mill_path), "--out", str(path), "--samples",
+                     str(samples), "--jobs", str(jobs), "--quiet"])
+    if code != 0:
+        raise RuntimeError(f"ident train --mill {mill_path} exited {code}")
+    return path, time.perf_counter() - t0
+
+
+def score(cases: list[dict[str, Any]], mill) -> dict[str, Any]:
+    """The per-mill figures of diagnosed cases (see the module doc)."""
+    observable = {c.element for c in mill.torque_channels()}
+    pairs, pairs_obs, bpairs = [], [], []
+    for c in cases:
+        if c.get("diagnosis") is None:
+            continue
+        el = c["diagnosis"]["elements"]
+        for eid, s in c["states"].items():
+            pairs.append((s, el[eid]["state"]))
+            if eid in observable:
+                pairs_obs.append((s, el[eid]["state"]))
+        for bid, s in c["bearing_states"].items():
+            bpairs.append((s, c["diagnosis"]["bearings"][bid]["state"]))
+
+    def frac(sel, ok) -> tuple[int, int]:
+        sub = [p for p in pairs if sel(p[0])]
+        return sum(ok(*p) for p in sub), len(sub)
+
+    return {
+        "recordings": sum(c.get("diagnosis") is not None for c in cases),
+        "failed": sum(c.get("diagnosis") is None for c in cases),
+        "element_accuracy": (sum(t == d for t, d in pairs), len(pairs)),
+        "observable_accuracy": (sum(t == d for t, d in pairs_obs), len(pairs_obs)),
+        "worn_recall": frac(lambda t: t == "worn", lambda t, d: d == "worn"),
+        "critical_recall": frac(lambda t: t == "critical", lambda t, d: d == "critical"),
+        "faulty_recall": frac(lambda t: t != "good", lambda t, d: d != "good"),
+        "false_alarm": frac(lambda t: t == "good", lambda t, d: d != "good"),
+        "bearing_accuracy": (sum(t == d for t, d in bpairs), len(bpairs)),
+    }
+
+
+def _fmt(pair: tuple[int, int]) -> str:
+    k, n = pair
+    return f"{k}/{n} ({100.0 * k / n:.0f} %)" if n else "-"
+
+
+def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
+    rows = [("recordings diagnosed", lambda f: f"{f['recordings']} (failed {f['failed']})"),
+            ("element state accuracy", lambda f: _fmt(f["element_accuracy"])),
+            ("  elements with a channel", lambda f: _fmt(f["observable_accuracy"])),
+            ("worn recall (said worn)", lambda f: _fmt(f["worn_recall"])),
+            ("critical recall (said critical)", lambda f: _fmt(f["critical_recall"])),
+            ("worn+critical said not good", lambda f: _fmt(f["faulty_recall"])),
+            ("good said worn/critical", lambda f: _fmt(f["false_alarm"])),
+            ("bearing state accuracy", lambda f: _fmt(f["bearing_accuracy"])),
+            ("model trained (s)", lambda f: f"{f['train_s']:.0f}"),
+            ("discrepancy, control (null)", lambda f: f.get("discrepancy control", "not run")),
+            ("discrepancy, hidden softening", lambda f: next(
+                (f"{k.split()[-1]}: {v}" for k, v in f.items()
+                 if k.startswith("discrepancy softening")), "not run"))]
+    names = list(figures)
+    w0 = max(len(r[0]) for r in rows)
+    cols = [[r[1](figures[m]) for r in rows] for m in names]
+    ws = [max(len(m), *(len(x) for x in col)) for m, col in zip(names, cols)]
+    print(" | ".join([" " * w0] + [m.ljust(w) for m, w in zip(names, ws)]), file=file)
+    print("-+-".join(["-" * w0] + ["-" * w for w in ws]), file=file)
+    for i, (label, _) in enumerate(rows):
+        print(" | ".join([label.ljust(w0)] + [col[i].ljust(w) for col, w in zip(cols, ws)]),
+              file=file)
+
+
+def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, directory: Path,
+               samples: int, jobs: int, discrepancy: bool, drag_fraction: float = 0.0,
+               log=print) -> tuple[dict, list]:
+    import ident
+
+    mill_path = MILLS[name]
+    mill = ident.load_mill(mill_path)
+    model_path, train_s = ensure_model(mill, mill_path, samples=samples, jobs=jobs,
+                                       drag_fraction=drag_fraction)
+    log(f"{name}: model {model_path} ({'trained in %.0f s' % train_s if train_s else 'cached'})")
+    cases = []
+    for k in range(per_mill):
+        path, case = make_case(mill, first_seed + k, directory, n_bars=n_bars)
+        code, data, err = run_cli(["diagnose", str(path), "--mill", str(mill_path),
+                                   "--model", str(model_path), "--quiet"])
+        case["exit"] = code
+        case["diagnosis"] = data if code == 0 else None
+        if code != 0:
+            case["stderr"] = err.strip()
+        cases.append(case)
+        said = {e: v["state"] for e, v in (data or {}).get("elements", {}).items()}
+        log(f"{name} seed {case['seed']} ({case['rate_hz']:.0f} Hz): truth {case['states']} "
+            f"{case['bearing_states']} -> {said or err.strip()} "
+            f"{ {b: v['state'] for b, v in (data or {}).get('bearings', {}).items()} }")
+    fig = score(cases, mill)
+    fig["train_s"] = train_s
+    if discrepancy:
+        soft, near = hidden_softening(mill)
+        for label, plant in (("control", None), (f"softening@{near}", soft)):
+            path, case = make_case(mill, first_seed + 999, directory, n_bars=4,
+                                   truth_gaps=False, plant_mill=plant)
+            t0 = time.perf_counter()
+            code, data, err = run_cli(["discrepancy", str(path), "--mill", str(mill_path),
+                                       "--no-plots", "--quiet"])
+            dt = time.perf_counter() - t0
+            if code == 0 and data is not None:
+                named = (f"{data['effect']}@{data['location']}" if data.get("effect")
+                         else "null")
+                txt = (f"{named} (nrmse {data['before']['nrmse']:.3f} -> "
+                       f"{data['after']['nrmse']:.3f}, {dt:.0f} s)")
+            else:
+                txt = f"exit {code}: {(err.strip().splitlines() or [''])[-1]}"
+            fig[f"discrepancy {label}"] = txt
+            cases.append({"discrepancy_case": label, "exit": code, "discrepancy": data,
+                          "seconds": dt, **case})
+            log(f"{name} discrepancy {label}: {txt}")
+    return fig, cases
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m validation.diagnose_study",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--per-mill", type=int, default=8, help="recordings diagnosed per mill")
+    ap.add_argument("--mills", nargs="+", default=list(MILLS), choices=list(MILLS))
+    ap.add_argument("--first-seed", type=int, default=500)
+    ap.add_argument("--bars", type=int, default=5, help="bars per recording")
+    ap.add_argument("--samples", type=int, default=300,
+                    help="library size when a model has to be trained")
+    ap.add_argument("--jobs", type=int, default=1, help="training worker processes")
+    ap.add_argument("--discrepancy", action="store_true",
+                    help="also run ident discrepancy on one control recording per mill")
+    ap.add_argument("--drag-fraction", type=float, default=0.0, metavar="F",
+                    help="train on a library with an idle drag in this fraction of its "
+                         "samples (default 0: the model ident train makes)")
+    ap.add_argument("--json", metavar="FILE", help="one line per recording")
+    ap.add_argument("--keep", metavar="DIR", help="keep the recordings here")
+    args = ap.parse_args(argv)
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    figures, rows = {}, []
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(args.keep) if args.keep else Path(tmp)
+        d.mkdir(parents=True, exist_ok=True)
+        for name in args.mills:
+            fig, cases = study_mill(name, per_mill=args.per_mill, first_seed=args.first_seed,
+                                    n_bars=args.bars, directory=d, samples=args.samples,
+                                    jobs=args.jobs, discrepancy=args.discrepancy,
+                                    drag_fraction=args.drag_fraction, log=log)
+            figures[name] = fig
+            rows += [dict(c, mill=name) for c in cases]
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            for r in rows:
+                fh.write(json.dumps(r, default=float) + "\n")
+    print_table(figures)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
