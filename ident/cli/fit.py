@@ -81,6 +81,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "freed at the final width, and keep the better: 'auto' (default) only "
                         "when the continued fit stays above the noise floor, 'always' (e.g. "
                         "from the last identified gaps; about twice the time) or 'never'")
+    p.add_argument("--nuisance", action="store_true",
+                   help="also fit per-window channel offsets, drag torques and the load "
+                        "ramps' skew (plant recordings; slower)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
                    help="wall seconds after which no further start or path is begun "
                         "(default 1800; each solver call is also bounded in iterations and "
@@ -176,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
         result = fit_gaps(mill, windows, family=args.family, method=method,
                           n_starts=args.starts, random_state=args.seed, starts=starts,
                           uncertainty=not args.no_uncertainty, direct=HELD[args.held],
-                          time_budget_s=args.time_budget,
+                          time_budget_s=args.time_budget, nuisance=args.nuisance,
                           progress=not args.quiet)
     doc = result.to_dict()
     doc["recording"] = str(args.recording)

@@ -487,7 +487,7 @@ def _block_functions(m: Any, *, d: int, ns: int, ne: int, dt: float,
         xe = sum(c[i] * X[i] for i in range(d + 1)) if nxe else ca.SX(0, 1)
         x = ca.vertcat(th, om, z0 - th[im], xe)
         xsamp.append(x)
-        yj = m.y(x, m.load(t0 + tj, win), p, t0 + tj)
+        yj = m.y(x, m.load(t0 + tj, win), p, t0 + tj, win)
         res.append((yj - ym[j * ny:(j + 1) * ny]) * wy * ym[ny * ns + j])
     G = ca.vertcat(*defs)
     R = ca.vertcat(*res)

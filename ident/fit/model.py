@@ -11,6 +11,30 @@ The fit's unknowns split into
 * **per-window initial states** (angles, speeds, speed-controller integral),
   the motor angle fixed at 0 (the rigid-body angle is unobservable).
 
+With ``nuisance=True`` (:func:`build_fit_model`) the fit also carries what
+plants record besides the driveline:
+
+* **per-window channel offsets**: each torque channel reads its
+  element's torque plus a constant over the window -- the strain gauge's zero,
+  its slow drift and random walk.  Plants record offsets of a few per cent of
+  the rolling torque, of either sign and different per channel; without them a
+  floating spindle that reads 600 N*m between bars must be pulled onto a flank;
+* **drag** (shared): a constant torque against rotation on one
+  mass per measured element, where the losses of the masses between that
+  element and the next measured ones act (:func:`drag_masses`).  Bearing and
+  mesh losses make a motor-side channel read more than a roll-side one
+  between bars and hold the gaps between them on their drive flanks; a load
+  on the rolls alone cannot do either;
+* the load ramp's **skew** (per window, :func:`skewed_cosine`), and the idle
+  side of each step held near the segmenter's idle level.
+
+On plant recording cold-s5 seed 202 (``validation.plantsim``, gaps right) they
+took the motor coupling's transient-band residual from 36 to 29 times its
+noise (1.4 % of its transient), and on hsm-f1 seed 103 the motor coupling's
+from 85 to 16 while others grew; the collocation solve took 2-4 times as
+long (the offsets and the load are nearly interchangeable at rest).  Off by
+default until a study shows what they buy (``ident fit --nuisance``).
+
 Gap position convention
 -----------------------
 With no stiffness inside the gap (``k_gap = 0``) an element's torque depends
@@ -23,7 +47,9 @@ counted from its start).  g3/g4 are fitted with ``shift = 0`` the same way, the
 gap centred on ``delta = 0``: ``gap_open = gap/2 - delta(t0)``.
 
 Load ramp (``ident.model.scenario``): a raised cosine of duration ``rise``
-centred on ``t_step`` from the level before, ``L0 + s0*(t - t_step)``, to the
+centred on ``t_step``, its time warped by a per-window ``skew``
+(:func:`skewed_cosine`: plants' bites rise fast and then approach their level,
+releases vary too), from the level before, ``L0 + s0*(t - t_step)``, to the
 level after, ``L1 + s1*(t - t_step)``; the slopes take up the slow fluctuation
 of the rolling torque (temperature, friction) over a window.  C1 in time and in
 its parameters because the cosine's slope vanishes where it is clipped.
@@ -41,15 +67,22 @@ import numpy as np
 from ..description import Mill
 from ..errors import FitError
 from ..model.dynamics import Driveline, Family, ModelOptions, build_driveline, default_family_params
+from ..model.effects import Drag
 from ..model.linear import angles_from_deflections, incidence, stiffness_matrix
+from ..model.scenario import nominal_torque
 
-__all__ = ["FitModel", "build_fit_model", "LOAD_PARAMS", "GAP_MAX"]
+__all__ = ["FitModel", "build_fit_model", "drag_masses", "LOAD_PARAMS", "GAP_MAX",
+           "DRAG_MAX"]
 
 #: Per-window load parameters, in order.
 LOAD_PARAMS = ("L0", "L1", "t_step", "rise", "s0", "s1")
 
 #: Default upper bound of any gap, rad (reduced).
 GAP_MAX = 0.03
+
+#: Upper bound of a drag torque, as a fraction of the mill's nominal rolling torque
+#: (:func:`ident.model.scenario.nominal_torque`): losses of a few per cent.
+DRAG_MAX = 0.1
 
 #: Smallest apparent gap of g3/g4 (a nearly tight element), rad.
 _GAP_MIN_SMOOTH = 2e-5
@@ -72,8 +105,9 @@ class FitModel:
     shared_lb, shared_ub, shared_scale : ndarray
         Bounds and typical magnitude of the shared parameters.
     window_names : tuple of str
-        Per-window parameters: :data:`LOAD_PARAMS` then ``"C46.open_frac"`` for
-        g1 elements with ``k_gap > 0``.
+        Per-window parameters: :data:`LOAD_PARAMS`, ``"C46.open_frac"`` for
+        g1 elements with ``k_gap > 0``, ``"skew"`` of the ramp, then ``"C46.offset"`` per measured
+        element (N*m reduced, added to its output) when the model has offsets.
     measured : tuple of str
         Element ids with a torque channel, in output order.
     pmap : casadi.Function
@@ -81,7 +115,8 @@ class FitModel:
     load : casadi.Function
         ``load(t, window) -> T_load`` (N*m reduced), ``t`` relative to the window start.
     y : casadi.Function
-        ``y(x, u, p, t) -> reduced torques of the measured elements`` (N*m).
+        ``y(x, u, p, t, window) -> reduced torques of the measured elements``
+        (N*m), the window's channel offsets included.
     """
 
     mill: Mill
@@ -101,6 +136,24 @@ class FitModel:
     motor_index: int
     kgap_elements: tuple[str, ...] = ()
     effects: tuple = field(default=())
+    drag_masses: tuple[str, ...] = ()
+    nuisance: bool = False
+
+    def drag(self, shared: np.ndarray) -> dict[str, float]:
+        """Drag torque per mass, N*m (reduced), from the shared vector."""
+        return {mid: float(shared[self.shared_names.index(f"{mid}.drag")])
+                for mid in self.drag_masses}
+
+    @property
+    def offset_index(self) -> tuple[int, ...]:
+        """Indices of the channel offsets in a window's parameter vector (measured order)."""
+        return tuple(self.window_names.index(f"{eid}.offset") for eid in self.measured
+                     if f"{eid}.offset" in self.window_names)
+
+    @property
+    def drag_index(self) -> tuple[int, ...]:
+        """Indices of the drag parameters in the shared vector."""
+        return tuple(self.shared_names.index(f"{mid}.drag") for mid in self.drag_masses)
 
     # ---- sizes ---------------------------------------------------------------------
     @property
@@ -189,8 +242,22 @@ def raised_cosine(s: Any, xp: Any = np) -> Any:
     return 0.5 - 0.5 * xp.cos(math.pi * xp.fmin(xp.fmax(s, 0.0), 1.0))
 
 
+def skewed_cosine(s: Any, skew: Any, xp: Any = np) -> Any:
+    """The raised cosine over a warped time: ``(1 - cos(pi phi))/2``, ``phi = s + skew s (1 - s)``.
+
+    ``s`` is clipped to [0, 1]; ``|skew| < 1`` keeps ``phi`` increasing, and the
+    ramp's slope still vanishes at both ends (C1).  ``skew > 0`` front-loads the
+    ramp (a bite whose torque rises fast and then approaches its level, as the
+    exponential approach plants record), ``skew < 0`` back-loads it, 0 is the
+    symmetric raised cosine.
+    """
+    sc = xp.fmin(xp.fmax(s, 0.0), 1.0)
+    return 0.5 - 0.5 * xp.cos(math.pi * (sc + skew * sc * (1.0 - sc)))
+
+
 def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Sequence = (),
-                    gap_max: float = GAP_MAX, smoothing_kind: str = "c1") -> FitModel:
+                    gap_max: float = GAP_MAX, smoothing_kind: str = "c1",
+                    nuisance: bool = False) -> FitModel:
     """Lay out the fit's parameters over the driveline of ``mill``.
 
     Parameters
@@ -206,6 +273,11 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
         Rounding of the g1 kinks (``ident.model.laws``): ``"c1"`` (default,
         exact outside the width: a third of the sqrt rounding's bias in a
         release's rattle at the same width) or ``"sqrt"``.
+    nuisance : bool
+        Also fit the plant nuisances (module docstring): a drag torque on each
+        of :func:`drag_masses`, a constant offset per window on every torque
+        channel and the ramp's ``skew``; the windows' idle side is then bounded
+        to the idle level (:meth:`ident.fit.problem.Problem.window_bounds`).
 
     Raises
     ------
@@ -218,9 +290,11 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
         raise FitError(f"mill '{mill.name}' has no torque channel: nothing to fit. Expected at "
                        "least one [[channel]] with quantity = \"torque\".")
     smoothing = "param" if family is Family.G1 else None
+    dmasses = drag_masses(mill) if nuisance else ()
     drv = build_driveline(mill, ModelOptions(family=family, smoothing=smoothing,
                                              smoothing_kind=smoothing_kind,
-                                             effects=tuple(effects)))
+                                             effects=tuple(effects) + tuple(
+                                                 Drag(mid) for mid in dmasses)))
     names: list[str] = []
     lb: list[float] = []
     ub: list[float] = []
@@ -244,8 +318,17 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
             lb += [_GAP_MIN_SMOOTH, 0.3]
             ub += [gap_max, 3.0]
             scale += [1e-3, 1.0]
+    t_nom = nominal_torque(mill)
+    for mid in dmasses:
+        names.append(f"{mid}.drag")
+        lb.append(0.0)
+        ub.append(DRAG_MAX * t_nom)
+        scale.append(0.01 * t_nom)
     kgap = tuple(e.id for e in mill.elements if family is Family.G1 and e.k_gap > 0)
     wnames = list(LOAD_PARAMS) + [f"{eid}.open_frac" for eid in kgap]
+    if nuisance:
+        wnames.append("skew")
+        wnames += [f"{eid}.offset" for eid in measured]
 
     shared = ca.SX.sym("shared", len(names))
     win = ca.SX.sym("window", len(wnames))
@@ -269,6 +352,8 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
             p[pidx[f"{e.id}.a0"]] = a0
             p[pidx[f"{e.id}.sigma"]] = sigma
             p[pidx[f"{e.id}.shift"]] = ca.SX(0.0)
+    for mid in dmasses:
+        p[pidx[Drag(mid).param_key("torque")]] = shared[names.index(f"{mid}.drag")]
     if "smoothing" in pidx:
         p[pidx["smoothing"]] = w
     pmap = ca.Function("pmap", [shared, win, w], [ca.vertcat(*p)], ["shared", "window", "w"],
@@ -276,7 +361,8 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
 
     t = ca.SX.sym("t")
     L0, L1, t_step, rise, s0, s1 = (win[i] for i in range(6))
-    r = raised_cosine((t - t_step) / rise + 0.5, ca)
+    skew = win[wnames.index("skew")] if nuisance else 0.0
+    r = skewed_cosine((t - t_step) / rise + 0.5, skew, ca)
     u = (L0 + s0 * (t - t_step)) * (1 - r) + (L1 + s1 * (t - t_step)) * r
     load = ca.Function("load", [t, win], [u], ["t", "window"], ["T_load"])
 
@@ -286,13 +372,18 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
     tt = ca.SX.sym("t")
     yall = drv.out(x, uu, pp, tt)
     idx = [drv.output_index(f"tau:{eid}") for eid in measured]
-    y = ca.Function("y", [x, uu, pp, tt], [yall[idx]], ["x", "u", "p", "t"], ["y"])
+    wy = ca.SX.sym("window", len(wnames))
+    off = (ca.vertcat(*[wy[wnames.index(f"{eid}.offset")] for eid in measured]) if nuisance
+           else ca.SX.zeros(len(measured)))
+    y = ca.Function("y", [x, uu, pp, tt, wy], [yall[idx] + off],
+                    ["x", "u", "p", "t", "window"], ["y"])
     im = mill.mass_index(mill.motor.mass)
     return FitModel(mill=mill, family=family, driveline=drv, shared_names=tuple(names),
                     shared_lb=np.array(lb), shared_ub=np.array(ub),
                     shared_scale=np.array(scale), window_names=tuple(wnames), measured=measured,
                     pmap=pmap, load=load, y=y, gap_max=gap_max, x0_fixed=(im,),
-                    motor_index=im, kgap_elements=kgap, effects=tuple(effects))
+                    motor_index=im, kgap_elements=kgap, effects=tuple(effects),
+                    drag_masses=dmasses, nuisance=bool(nuisance))
 
 
 def _widened(e: Any) -> Any:
@@ -326,11 +417,14 @@ def static_state(model: FitModel, level: float, shared: np.ndarray, window: np.n
     for mid, s in zip(mill.load.masses, mill.load.share):
         f[mill.mass_index(mid)] -= s * level
     f[im] += level
+    for mid, d in model.drag(shared).items():  # the motor supplies the losses too
+        f[mill.mass_index(mid)] -= d
+        f[im] += d
     theta_lin = np.linalg.lstsq(K, f, rcond=None)[0]
     tau = np.array([e.k for e in mill.elements]) * (D @ theta_lin)
     fracs = np.broadcast_to(np.asarray(open_frac, dtype=float), (len(mill.elements),))
     gaps, contact = _gaps_and_contacts(model, shared)
-    tol = 1e-3 * max(abs(level), 1.0)
+    tol = 1e-3 * max(abs(level), float(np.max(np.abs(tau), initial=0.0)), 1.0)
     delta = np.empty(len(mill.elements))
     for j, e in enumerate(mill.elements):
         if tau[j] > tol:
@@ -342,9 +436,69 @@ def static_state(model: FitModel, level: float, shared: np.ndarray, window: np.n
     theta = angles_from_deflections(mill, delta, im)
     x = np.zeros(model.nx)
     x[:n] = theta
-    x[2 * n] = level / mill.motor.ki if mill.motor.ki else 0.0
+    x[2 * n] = float(f[im]) / mill.motor.ki if mill.motor.ki else 0.0
     x[2 * n + 1:] = model.driveline.x_idle[2 * n + 1:]
     return x
+
+
+def drag_masses(mill: Mill) -> tuple[str, ...]:
+    """Where the fit's drag torques act: one mass per measured element that has losses to carry.
+
+    For each measured element (torque channel), its *group* is the masses on
+    its side away from the motor that are neither load masses nor beyond a
+    further measured element: the masses whose losses it alone carries among
+    the channels.  Static torques tell the groups apart, not the masses within
+    one, so each group gets one drag torque, at its mass farthest from the
+    motor (every element between the channel and that mass carries it).  A
+    group of no mass (a channel next to the rolls) gets none.
+
+    Returns
+    -------
+    tuple of str
+        Mass ids, in the order of the measured elements.
+    """
+    im = mill.mass_index(mill.motor.mass)
+    n = len(mill.masses)
+    adj: dict[int, list[tuple[int, int]]] = {i: [] for i in range(n)}
+    for j, e in enumerate(mill.elements):
+        a, b = mill.mass_index(e.from_), mill.mass_index(e.to)
+        adj[a].append((b, j))
+        adj[b].append((a, j))
+    depth = {im: 0}
+    parent_el: dict[int, int] = {}
+    order = [im]
+    for i in order:  # breadth first from the motor
+        for k, j in adj[i]:
+            if k not in depth:
+                depth[k] = depth[i] + 1
+                parent_el[k] = j
+                order.append(k)
+
+    def beyond(j: int) -> set[int]:
+        e = mill.elements[j]
+        a, b = mill.mass_index(e.from_), mill.mass_index(e.to)
+        root = b if depth.get(b, -1) > depth.get(a, -1) else a
+        out, todo = set(), [root]
+        while todo:
+            i = todo.pop()
+            out.add(i)
+            todo += [k for k, jj in adj[i] if depth.get(k, -1) > depth[i] and parent_el.get(k) == jj]
+        return out
+
+    measured = list(dict.fromkeys(c.element for c in mill.torque_channels()))
+    idx = {e.id: j for j, e in enumerate(mill.elements)}
+    sides = {eid: beyond(idx[eid]) for eid in measured}
+    loads = {mill.mass_index(m) for m in mill.load.masses}
+    out = []
+    for eid in measured:
+        group = set(sides[eid]) - loads
+        for other in measured:
+            if other != eid and sides[other] < sides[eid]:
+                group -= sides[other]
+        if group:
+            far = max(group, key=lambda i: (depth[i], i))
+            out.append(mill.masses[far].id)
+    return tuple(dict.fromkeys(out))
 
 
 def _gaps_and_contacts(model: FitModel, shared: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

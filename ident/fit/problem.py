@@ -16,7 +16,22 @@ import numpy as np
 from .model import FitModel, static_state
 from .windows import FitWindow
 
-__all__ = ["Problem", "Estimate", "SolveInfo", "StageInfo", "make_problem", "initial_estimate"]
+__all__ = ["Problem", "Estimate", "SolveInfo", "StageInfo", "make_problem", "initial_estimate",
+           "OFFSET_MAX", "SKEW_MAX", "IDLE_LEVEL_TOL", "IDLE_SLOPE_MAX"]
+
+#: Bound of a channel's offset over a window, as a fraction of the channel's largest
+#: reading there: zero offsets of 0-2 % plus drift and random walk of 1-2 % are what
+#: plants record (validation.plantsim draws up to 3.5 % of the rolling torque).
+OFFSET_MAX = 0.05
+
+#: Largest skew of a load ramp (1 would stop the warped time at one end).
+SKEW_MAX = 0.9
+
+#: On the idle side of a step the load stays within this fraction of the step of the
+#: segmenter's idle level ...
+IDLE_LEVEL_TOL = 0.1
+#: ... and changes by at most this fraction of the step per second.
+IDLE_SLOPE_MAX = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,10 +82,36 @@ class Problem:
         lb = [-3 * tref, -3 * tref, max(ts - 0.08, -0.05), 2e-3, -2 * tref, -2 * tref]
         ub = [3 * tref, 3 * tref, min(ts + 0.08, dur), 0.12, 2 * tref, 2 * tref]
         sc = [tref, tref, 0.01, 0.01, 0.1 * tref, 0.1 * tref]
+        if not self.model.nuisance:
+            return self._extra_bounds(i, lb, ub, sc)
+        # the idle side (before a bite, after a release): no bar in the stand, so the
+        # rolls' load stays near the idle level the segmenter read off the plateau
+        # and nearly constant.  Free, a fit can drive a floating roll through its gap
+        # with a load no idle mill has (cold-s5: -9 kN*m rising at 3 steps/s).
+        step = max(abs(w.level_after - w.level_before), 0.05 * tref)
+        li, si = (0, 4) if w.kind == "bite" else (1, 5)
+        idle = w.level_before if w.kind == "bite" else w.level_after
+        lb[li], ub[li] = idle - IDLE_LEVEL_TOL * step, idle + IDLE_LEVEL_TOL * step
+        lb[si], ub[si] = -IDLE_SLOPE_MAX * step, IDLE_SLOPE_MAX * step
+        return self._extra_bounds(i, lb, ub, sc)
+
+    def _extra_bounds(self, i: int, lb: list, ub: list, sc: list
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Append the bounds of window ``i``'s parameters after the load ramp's."""
         for _ in self.model.kgap_elements:
             lb.append(0.0)
             ub.append(1.0)
             sc.append(1.0)
+        if "skew" in self.model.window_names:
+            lb.append(-SKEW_MAX)  # the ramp's skew (ident.fit.model.skewed_cosine)
+            ub.append(SKEW_MAX)
+            sc.append(0.3)
+        for c, _ in enumerate(self.model.offset_index):
+            # a strain gauge's zero and drift: a few per cent of the channel's largest reading
+            ref = max(float(np.max(np.abs(self.y[i][:, c]))) if self.y[i].size else 1.0, 1.0)
+            lb.append(-OFFSET_MAX * ref)
+            ub.append(OFFSET_MAX * ref)
+            sc.append(0.01 * ref)
         return np.array(lb), np.array(ub), np.array(sc)
 
 
@@ -181,7 +222,7 @@ def initial_estimate(problem: Problem, shared: np.ndarray, *, open_frac: float =
             W[i] = window[i]
         else:
             W[i, :6] = [w.level_before, w.level_after, w.t_step - w.t[0] - 0.003, 0.02, 0.0, 0.0]
-            W[i, 6:] = 0.5
+            W[i, 6:6 + len(m.kgap_elements)] = 0.5
         lb, ub, _ = problem.window_bounds(i)
         W[i] = np.clip(W[i], lb, ub)
         X0[i] = static_state(m, float(W[i, 0]), shared, W[i], open_frac=open_frac)

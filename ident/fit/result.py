@@ -28,6 +28,7 @@ def _band_dict(band: Any) -> dict[str, Any]:
     if band is None:
         return {}
     return {"band_ratio": {k: _f(v) for k, v in band.ratio.items()},
+            "band_relative": {k: _f(v) for k, v in band.relative.items()},
             "transient_band_hz": [_f(v) for v in band.bands.transient],
             "noise_band_hz": [_f(v) for v in band.bands.noise],
             "noise_sigma": {k: _f(v) for k, v in band.noise_sigma.items()},
@@ -134,8 +135,11 @@ class SolverReport:
         iterations, seconds.
     path : str
         How the winner got there: ``continued`` (horizon and smoothing-width
-        continuation) or ``held`` (the continuation with the gaps held at the
-        start, then freed at the final width).
+        continuation), ``held`` (the continuation with the gaps held at the
+        start, then freed at the final width), ``baseline`` (a continued
+        restart from the linear baseline, every gap nearly closed) or ``swap
+        A/B`` (a held restart with the gaps of the elements in series A and B
+        exchanged).
     stages : tuple of dict
         The winning start's continuation stages.
     build_seconds : float
@@ -214,7 +218,7 @@ class FitResult:
     @property
     def reached_noise_floor(self) -> bool:
         """Whether every channel's residual is down to the sensor noise in the transient band."""
-        return bool(self.band is not None and self.band.all_pass)
+        return bool(self.band is not None and self.band.all_at_noise)
 
     @property
     def identified(self) -> dict[str, bool]:

@@ -95,7 +95,7 @@ def build_simulator(model: FitModel, n_samples: int, dt: float, *, n_sub: int = 
         k3 = drv.rhs(x + 0.5 * h * k2, model.load(t + 0.5 * h, win), p, t + 0.5 * h)
         k4 = drv.rhs(x + h * k3, model.load(t + h, win), p, t + h)
         x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    y = model.y(x, model.load(tk + dt, win), p, tk + dt)
+    y = model.y(x, model.load(tk + dt, win), p, tk + dt, win)
     step = ca.Function("step", [xs, tk, p, win], [x, y])
     acc = step.mapaccum("acc", n_samples - 1, [0], [0])
 
@@ -106,7 +106,7 @@ def build_simulator(model: FitModel, n_samples: int, dt: float, *, n_sub: int = 
     pp = model.pmap(shared, window, w)
     tgrid = ca.DM(np.arange(n_samples - 1)[None, :] * dt)
     Xn, Yn = acc(x0, tgrid, pp, window)
-    y0 = model.y(x0, model.load(0.0, window), pp, 0.0)
+    y0 = model.y(x0, model.load(0.0, window), pp, 0.0, window)
     sim = ca.Function("sim", [x0, shared, window, w], [ca.horzcat(y0, Yn), ca.horzcat(x0, Xn)])
     if not sensitivities:
         return WindowSimulator(n_samples=n_samples, dt=dt, n_sub=n_sub, sim=sim, jac=None)
@@ -123,7 +123,7 @@ def build_simulator(model: FitModel, n_samples: int, dt: float, *, n_sub: int = 
     Jt = ca.jacobian(xn, theta)
     Sn = ca.mtimes(Jx, Ssym) + ca.horzcat(ca.SX(nx, nx), Jt)
     xa = ca.SX.sym("xa", nx)
-    ya = model.y(xa, model.load(tk + dt, win), ps, tk + dt)
+    ya = model.y(xa, model.load(tk + dt, win), ps, tk + dt, win)
     yjac = ca.Function("yjac", [xa, tk, sh, win, ws],
                        [ca.jacobian(ya, xa), ca.jacobian(ya, theta)])
     yx, yt = yjac(xn, tk, sh, win, ws)
@@ -135,7 +135,7 @@ def build_simulator(model: FitModel, n_samples: int, dt: float, *, n_sub: int = 
     acc_s = step_s.mapaccum("acc_s", n_samples - 1, [0], [0])
     S0 = ca.horzcat(ca.DM.eye(nx), ca.DM(nx, npar - nx))
     _, Yn_s, dY = acc_s(ca.vertcat(x0, ca.vec(S0)), tgrid, shared, window, w)
-    y0s = model.y(x0, model.load(0.0, window), pp, 0.0)
+    y0s = model.y(x0, model.load(0.0, window), pp, 0.0, window)
     dy0 = ca.jacobian(y0s, ca.vertcat(x0, shared, window))
     jac = ca.Function("simjac", [x0, shared, window, w], [ca.horzcat(y0s, Yn_s), dy0, dY])
     return WindowSimulator(n_samples=n_samples, dt=dt, n_sub=n_sub, sim=sim, jac=jac)

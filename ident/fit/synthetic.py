@@ -81,10 +81,15 @@ class SyntheticCase:
                 steps.append((bar.t_step_bite, 0.0, bar.static_torque, bar.rise_time))
                 steps.append((bar.t_step_release, bar.static_torque, 0.0, bar.fall_time))
             ts, L0, L1, rise = min(steps, key=lambda st: abs(st[0] - w.t_step))
-            row = [L0 + self.scenario.idle_torque, L1 + self.scenario.idle_torque,
-                   ts - w.t[0], rise, 0.0, 0.0] + [0.5] * (m.n_window - 6)
+            row = np.zeros(m.n_window)  # skew, channel offsets 0: this generator has none
+            row[:6] = [L0 + self.scenario.idle_torque, L1 + self.scenario.idle_torque,
+                       ts - w.t[0], rise, 0.0, 0.0]
+            for eid in m.kgap_elements:
+                row[m.window_names.index(f"{eid}.open_frac")] = 0.5
             W.append(row)
-        shared = np.array([self.truth[e.id]["gap"] for e in mill.elements])
+        shared = np.zeros(m.n_shared)  # drag 0: this generator's idle torque acts on the rolls
+        for e in mill.elements:
+            shared[m.shared_names.index(f"{e.id}.gap")] = self.truth[e.id]["gap"]
         return Estimate(shared=shared, window=np.array(W), x0=np.array(X0))
 
 

@@ -12,7 +12,9 @@ fails is its one-line ``reason``:
 3. on every channel that carries a fair share of the gap's information
    (:data:`SEEN_SHARE` of the largest channel's), the residual in the
    **transient band** is at the sensor noise there (:mod:`ident.fit.noise`:
-   band ratio at most :data:`~ident.fit.noise.BAND_RATIO_MAX`).  Slow
+   band ratio at most :data:`~ident.fit.noise.BAND_RATIO_MAX`) *or* small
+   against the transient the channel recorded (at most :data:`RELATIVE_MAX`
+   of its RMS in that band: a model error, not a misplaced impact).  Slow
    misfit (offsets, drift, the rolling load's fluctuation) lies below that
    band and does not count; a local minimum puts wrong phases and amplitudes
    at the natural frequencies, which does;
@@ -28,7 +30,7 @@ of the experiment (channels and windows), ``identified`` about this fit.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -36,7 +38,8 @@ import numpy as np
 from ..model.linear import natural_modes
 from .noise import BAND_RATIO_MAX, Bands, NoiseSpectrum, band_ratio, bands, noise_from_windows
 
-__all__ = ["BandCheck", "band_check", "verdicts", "SEEN_SHARE", "window_residuals"]
+__all__ = ["BandCheck", "band_check", "verdicts", "SEEN_SHARE", "RELATIVE_MAX",
+           "window_residuals"]
 
 #: Largest change of a gap, in standard deviations of the change, when one
 #: window is left out (nested estimators: N(0, 1) for windows that agree; 4 keeps
@@ -49,6 +52,16 @@ Z_WINDOWS = 4.0
 #: a shipped sample moved a right 1.02 mrad gap by 3.7 mrad, "7 standard
 #: deviations").  The largest |z| is still reported (``window_z``).
 WINDOWS_GATE = False
+
+#: Largest model error a channel may keep in the transient band, as a fraction of the
+#: transient it recorded there (RMS over RMS), when its residual is above the noise.
+#: Plants' sensors are often far quieter than any model of the driveline is exact:
+#: on plant-chain recordings (validation.plantsim) whose gaps the fit got right
+#: (within 1-4 %) the motor-side channel kept 0.8-1.4 % of its transient at 29 times
+#: its noise, while fits with gaps 11-36 % off kept 4.7-22 %.  A local minimum misplaces
+#: the impacts, which costs several per cent; a slow nuisance or a ramp's shape costs
+#: about one.
+RELATIVE_MAX = 0.03
 
 #: A channel "sees" an element when it carries at least this share of the
 #: largest channel's Fisher information about the element's gap.
@@ -72,6 +85,9 @@ class BandCheck:
         (reduced).
     noise_source : str
         ``recording`` or ``windows`` (:class:`~ident.fit.noise.NoiseSpectrum`).
+    relative : mapping of str to float
+        The residual's RMS in the transient band over the data's there (the
+        model error as a fraction of the transient the channel recorded).
     """
 
     bands: Bands
@@ -79,14 +95,25 @@ class BandCheck:
     dof: Mapping[str, float]
     noise_sigma: Mapping[str, float]
     noise_source: str
+    relative: Mapping[str, float] = field(default_factory=dict)
 
-    def passes(self, channel: str) -> bool:
+    def at_noise(self, channel: str) -> bool:
+        """The channel's transient-band residual is at the sensor noise there."""
         v = self.ratio.get(channel, math.nan)
         return bool(math.isfinite(v) and v <= BAND_RATIO_MAX)
+
+    def passes(self, channel: str) -> bool:
+        """At the noise, or a model error small against the transient (:data:`RELATIVE_MAX`)."""
+        r = self.relative.get(channel, math.nan)
+        return self.at_noise(channel) or bool(math.isfinite(r) and r <= RELATIVE_MAX)
 
     @property
     def all_pass(self) -> bool:
         return all(self.passes(c) for c in self.ratio)
+
+    @property
+    def all_at_noise(self) -> bool:
+        return all(self.at_noise(c) for c in self.ratio)
 
 
 def window_residuals(r: np.ndarray, ny: int, lengths: Sequence[int]) -> list[np.ndarray]:
@@ -117,12 +144,18 @@ def band_check(problem: Any, residual_windows: Sequence[np.ndarray]) -> BandChec
     ratio: dict[str, float] = {}
     dof: dict[str, float] = {}
     sig: dict[str, float] = {}
+    rel: dict[str, float] = {}
     for c, eid in enumerate(m.measured):
         level = noise.level(eid, bd.noise)
         res = [w[:, c] * problem.y_scale[c] for w in residual_windows]
         ratio[eid], dof[eid] = band_ratio(res, dt, bd.transient, level)
         sig[eid] = noise.sigma(eid, bd.noise, 1.0 / dt)
-    return BandCheck(bands=bd, ratio=ratio, dof=dof, noise_sigma=sig, noise_source=noise.source)
+        data = [y[:len(w), c] - float(np.mean(y[:len(w), c]))
+                for y, w in zip(problem.y, residual_windows)]
+        signal, _ = band_ratio(data, dt, bd.transient, level)
+        rel[eid] = math.sqrt(ratio[eid] / signal) if signal > 0 else math.nan
+    return BandCheck(bands=bd, ratio=ratio, dof=dof, noise_sigma=sig, noise_source=noise.source,
+                     relative=rel)
 
 
 def _noise(problem: Any, band: tuple[float, float]) -> NoiseSpectrum:
@@ -172,10 +205,12 @@ def verdicts(elements: Mapping[str, Any], *, model: Any, problem: Any, check: Ba
             bad = [c for c in seen if not check.passes(c)]
             if bad:
                 worst = max(bad, key=lambda c: check.ratio.get(c, math.inf))
+                rel = check.relative.get(worst, math.nan)
                 reason = (f"the residual of {names[worst]} in the transient band "
                           f"({lo:.0f}-{hi:.0f} Hz) is {check.ratio[worst]:.2f} times the sensor "
-                          f"noise there (at most {BAND_RATIO_MAX}): a local minimum or an "
-                          "effect the model lacks")
+                          f"noise there and {100 * rel:.1f} % of the transient (at most "
+                          f"{BAND_RATIO_MAX:g} times or {100 * RELATIVE_MAX:g} %): a local "
+                          "minimum or an effect the model lacks")
             elif WINDOWS_GATE and moves is not None and eid in moves:
                 d, z = moves[eid]
                 tol = max(0.25 * abs(el.gap), 5e-4)

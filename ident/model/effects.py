@@ -58,7 +58,7 @@ from .dynamics import EffectTerms
 
 __all__ = ["EFFECT_NAMES", "ParamSpec", "Backlash", "SofteningStiffness", "HardeningStiffness",
            "SpindleImbalance", "CoulombFriction", "StripCoupling", "TorqueLoopLag", "Gated",
-           "SensorFilter", "make_effect", "candidate_locations", "spindles", "roll_pairs",
+           "SensorFilter", "Drag", "make_effect", "candidate_locations", "spindles", "roll_pairs",
            "typical_deflection",
            "EFFECT_CLASSES"]
 
@@ -405,6 +405,52 @@ class CoulombFriction(_Base):
         t = nominal_torque(mill)
         return (ParamSpec("force", 0.0, 0.3 * t, 0.01 * t),
                 ParamSpec("v_smooth", 1e-4, 0.1, 5e-3, False))
+
+
+# ---- drag (a nuisance of every fit, not a named effect) ---------------------------------
+@dataclass(frozen=True)
+class Drag(_Base):
+    """A constant drag torque on one mass: bearing, gear-mesh and windage losses.
+
+    The mass turns at the nominal speed in one direction, so its losses oppose
+    rotation with a constant torque (a load on that mass, not on the rolls).
+    Between bars such drag holds the elements between the motor and the mass
+    against their drive flanks, and their torque channels read more than the
+    channels nearer the rolls.  Not an effects.md name: the fit carries it as a
+    nuisance (:func:`ident.fit.model.drag_masses`), the discrepancy workflow
+    never names it.
+
+    Parameters
+    ----------
+    location : str
+        Mass id.
+    torque : float
+        Drag torque, N*m (reduced), positive against rotation.
+    """
+
+    location: str
+    torque: float = 0.0
+    name: ClassVar[str] = "drag"
+    _params: ClassVar[tuple[str, ...]] = ("torque",)
+
+    def terms(self, ctx: Any, p: Any) -> EffectTerms:
+        try:
+            i = ctx.mill.mass_index(self.location)
+        except Exception:  # noqa: BLE001 - name the mass and the choices
+            raise IdentError(f"drag: location must be a mass of mill '{ctx.mill.name}'. "
+                             f"Got {self.location!r}.") from None
+        e = np.zeros(len(ctx.mill.masses))
+        e[i] = 1.0
+        return EffectTerms(mass_torque=-ca.DM(e) * p[0])
+
+    def neutral(self, mill: Mill) -> dict[str, float]:
+        return {"torque": 0.0}
+
+    def specs(self, mill: Mill) -> tuple[ParamSpec, ...]:
+        from .scenario import nominal_torque
+
+        t = nominal_torque(mill)
+        return (ParamSpec("torque", 0.0, 0.1 * t, 0.01 * t),)
 
 
 # ---- strip coupling ------------------------------------------------------------------------
