@@ -33,6 +33,13 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(JOBS) --dist loadscope -q -m "not slow"
 
+# The fit's verdict over many recordings of both generators and both mills (issue 12's
+# figures): acceptance at the global optimum and in local minima, accepted-and-right,
+# accepted-but-wrong, interval coverage, wall time.  Resumable (out/validate/fit_study.jsonl);
+# VALIDATE_ARGS="--plant 16 --ident 4" sets the sample.
+validate: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m validation.fit_study $(VALIDATE_ARGS)
+
 bench: $(STAMP)
 	$(PY) -m benchmarks
 
