@@ -181,8 +181,8 @@ def _levels(y: np.ndarray, n: int, fs: float, sigma: float,
             min_step: float | None) -> Levels | None:
     """Idle level, smallest step and thresholds of the smoothed signal ``y``."""
     stride = max(1, y.size // 400_000)
-    ys = y[::stride]
-    fin = ys[np.isfinite(ys)]
+    fin = y[::stride]
+    fin = fin[np.isfinite(fin)]
     if fin.size < 10:
         return None
     lo, hi = np.percentile(fin, [0.1, 99.9])
@@ -190,11 +190,10 @@ def _levels(y: np.ndarray, n: int, fs: float, sigma: float,
     if not span > 0:
         return None
     # plateaus: the smoothed signal changes by less than span / 20 over the triangle's width
-    change = np.full(y.size, np.inf)
-    if y.size > 2 * n:
-        d = np.abs(y[2 * n:] - y[:-2 * n])
-        change[n:-n] = np.where(np.isfinite(d), d, np.inf)
-    flat = np.sort(ys[change[::stride] < 0.05 * span])
+    at = np.arange(n, y.size - n, stride)
+    with np.errstate(invalid="ignore"):
+        flat_at = np.abs(y[at + n] - y[at - n]) < 0.05 * span  # False where NaN
+    flat = np.sort(y[at[flat_at]])
     # levels: groups of plateau values separated by more than span / 10
     cuts = np.flatnonzero(np.diff(flat) > 0.1 * span) + 1
     groups = [g for g in np.split(flat, cuts) if g.size * stride >= 0.1 * fs and g.size >= 5]
