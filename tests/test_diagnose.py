@@ -17,6 +17,7 @@ from ident.diagnose import (describe_feature, diagnose_features, draw_sample, lo
 from ident.diagnose.library import LibraryRanges, Nuisance, simulate_sample
 from ident.diagnose.states import STATES, bearing_state, element_state
 from ident.errors import ModelArtifactError
+from ident.io import load_mill
 from ident.model.dynamics import ModelOptions
 from ident.model.simulate import simulate
 
@@ -89,7 +90,7 @@ def test_nuisance_effect_equals_a_stiffer_damper_mill(mill):
 
 def test_library_draws_few_faults_and_reproduces(mill, tiny_library):
     lib = tiny_library
-    assert len(lib) == 12 and lib.mill_sha256 == mill.sha256
+    assert len(lib) == 12 and lib.mill_hash == mill.content_hash()
     for e in mill.elements:
         assert set(lib.truth[f"{e.id}.state"]) <= set(STATES)
         assert (lib.truth[f"{e.id}.gap_open"] <= lib.truth[f"{e.id}.gap"] + 1e-15).all()
@@ -160,9 +161,11 @@ def test_out_of_range_recording_is_uncertain(mill, tiny_model, tiny_library):
 def test_artefact_roundtrip_and_refusals(mill, tiny_model, tmp_path):
     p = save_model(tiny_model, tmp_path / "m.joblib")
     m2 = load_model(p, mill)
-    assert m2.mill_sha256 == mill.sha256 and m2.feature_names == tiny_model.feature_names
+    assert m2.mill_hash == mill.content_hash() and m2.feature_names == tiny_model.feature_names
     other = mill.with_overrides({"C46.k": 2.0e7})
-    with pytest.raises(ModelArtifactError, match=f"trained for mill file sha256 {mill.sha256}"):
+    with pytest.raises(ModelArtifactError,
+                       match=f"trained for another mill description .content hash "
+                             f"{mill.content_hash()}"):
         load_model(p, other)
     import joblib
 
@@ -180,13 +183,29 @@ def test_artefact_roundtrip_and_refusals(mill, tiny_model, tmp_path):
 
 def test_training_refuses_a_library_of_another_mill(mill, tiny_library):
     other = mill.with_overrides({"C46.k": 2.0e7})
-    with pytest.raises(ModelArtifactError, match="library was simulated from mill file"):
+    with pytest.raises(ModelArtifactError, match="library was simulated from another mill description"):
         train_model(tiny_library, other)
 
 
 def test_model_cache_path(mill, monkeypatch, tmp_path):
     monkeypatch.setenv("IDENT_CACHE", str(tmp_path))
-    assert model_cache_path(mill) == tmp_path / "models" / f"{mill.sha256}.joblib"
+    assert model_cache_path(mill) == tmp_path / "models" / f"{mill.content_hash()}.joblib"
+
+
+def test_model_cache_follows_the_description_not_the_file_bytes(mill_path, tmp_path,
+                                                                 monkeypatch):
+    """A comment or a reformatted file finds the same cached model; a changed value a new one
+    (issue 13: any edit of the mill file retrained the model)."""
+    monkeypatch.setenv("IDENT_CACHE", str(tmp_path))
+    text = mill_path.read_text()
+    commented = tmp_path / "commented.toml"
+    commented.write_text("# inspected 2026-11-30, no change\n\n" + text.replace(" = ", "   =   "))
+    changed = tmp_path / "changed.toml"
+    changed.write_text(text.replace("k = 1.815e7", "k = 1.9e7", 1))
+    a, b, c = (load_mill(p) for p in (mill_path, commented, changed))
+    assert a.sha256 != b.sha256                      # the bytes differ ...
+    assert model_cache_path(a) == model_cache_path(b)  # ... the description does not
+    assert model_cache_path(c) != model_cache_path(a)
 
 
 # ---- command line ------------------------------------------------------------------------------
@@ -229,7 +248,7 @@ def test_cli_diagnose_refuses_a_model_of_another_mill(mill, tiny_model, recordin
                  "--quiet"])
     assert code == 2
     err = capsys.readouterr().err
-    assert "was trained for mill file sha256" in err and "retrain" in err
+    assert "was trained for another mill description" in err and "retrain" in err
 
 
 def test_cli_train_then_diagnose_trains_and_caches(mill_path, recording, tmp_path, monkeypatch,

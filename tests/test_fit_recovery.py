@@ -27,7 +27,10 @@ def test_collocation_recovers_the_gaps(mill, tmp_path):
     case = synthetic_case(mill, draw(mill, 21), seed=21, n_bars=2, directory=tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no ConvergenceWarning
-        res = fit_gaps(mill, case.windows)
+        # the continued path alone, as measured above: with restarts="auto" this fit ran
+        # past the suite's 900 s timeout (stop 19, issue 12's note); restarts have their
+        # own tests (test_fit.py::test_closed_gaps_are_found_closed)
+        res = fit_gaps(mill, case.windows, restarts="never")
     assert res.converged and res.solver.status == "Solve_Succeeded"
     assert res.reached_noise_floor, res.noise_ratio
     for eid in MEASURED:

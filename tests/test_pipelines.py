@@ -16,7 +16,24 @@ def _repo_on_path(repo_root, monkeypatch):
     monkeypatch.syspath_prepend(str(repo_root))
 
 
-def test_demo_end_to_end_and_rerun(tmp_path, capsys):
+@pytest.fixture
+def tiny_cached_model(mill):
+    """A small wear model of the shipped mill in the (hermetic) cache, removed after: the
+    demo diagnoses with the mill's cached model and would otherwise train the full one
+    first (about 4 minutes; training on first use is tested in test_diagnose and the
+    campaign's e2e test)."""
+    from ident.diagnose import model_cache_path, save_model, simulate_library, train_model
+    from ident.store import available_stages
+
+    cached = model_cache_path(mill)
+    if "diagnose" in available_stages() and not cached.exists():
+        lib = simulate_library(mill, n=16, random_state=5)
+        save_model(train_model(lib, mill, random_state=0, max_iter=30), cached)
+    yield cached
+    cached.unlink(missing_ok=True)
+
+
+def test_demo_end_to_end_and_rerun(tmp_path, capsys, tiny_cached_model):
     from pipelines import demo
 
     out = tmp_path / "demo"

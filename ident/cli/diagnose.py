@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     out["transients"] = {"bites": int((tf.table["kind"] == "bite").sum()),
                          "releases": int((tf.table["kind"] == "release").sum())}
     out["model"] = {"path": model_path, "samples": model.n_samples,
-                    "mill_sha256": model.mill_sha256, "versions": model.versions}
+                    "mill_hash": model.mill_hash, "versions": model.versions}
     write_json(out, args.out)
     if not args.quiet:
         states = ", ".join(f"{k}={v['state']}" + (" (fit)" if v["source"] == "fit" else "")

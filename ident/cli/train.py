@@ -56,7 +56,7 @@ def train_and_save(mill, out, *, samples: int, seed: int, jobs: int, bearings: b
     if not quiet:
         print(f"ident train: wrote {path} ({samples} recordings simulated in {t1 - t0:.0f} s, "
               f"trained in {t2 - t1:.0f} s)", file=sys.stderr)
-    return {"model": str(path), "mill": mill.name, "mill_sha256": mill.sha256,
+    return {"model": str(path), "mill": mill.name, "mill_hash": mill.content_hash(),
             "samples": samples, "seed": seed, "versions": model.versions,
             "elements": list(model.element_ids), "bearings": list(model.bearing_ids),
             "seconds": {"simulate": t1 - t0, "train": t2 - t1}}

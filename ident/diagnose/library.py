@@ -525,8 +525,9 @@ class Library:
     truth : DataFrame
         Same rows: ``{ID}.gap``, ``{ID}.gap_open``, ``{ID}.state`` per element,
         ``{ID}.clearance``, ``{ID}.state`` per bearing, and the nuisance draws.
-    mill_sha256 : str
-        Hash of the mill file the library was simulated from.
+    mill_hash : str
+        :meth:`~ident.description.Mill.content_hash` of the mill the library was
+        simulated from.
     ranges : LibraryRanges
     options : FeatureOptions
     random_state : int or None
@@ -536,7 +537,7 @@ class Library:
 
     features: pd.DataFrame
     truth: pd.DataFrame
-    mill_sha256: str
+    mill_hash: str
     ranges: LibraryRanges = field(default_factory=LibraryRanges)
     options: FeatureOptions = field(default_factory=FeatureOptions)
     random_state: int | None = None
@@ -630,5 +631,5 @@ def simulate_library(mill: Mill, *, n: int, random_state: int | None = 0, n_jobs
         bar.close()
     feats = pd.DataFrame([r[0] for r in results]).reset_index(drop=True)
     truth = pd.DataFrame([r[1] for r in results]).reset_index(drop=True)
-    return Library(features=feats, truth=truth, mill_sha256=mill.sha256, ranges=ranges,
+    return Library(features=feats, truth=truth, mill_hash=mill.content_hash(), ranges=ranges,
                    options=options, random_state=random_state, bearings=bearings)

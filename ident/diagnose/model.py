@@ -21,10 +21,12 @@ the library.  An element without a torque channel on it is diagnosed all the
 same but marked ``observable: False``.
 
 The artefact (:func:`save_model`/:func:`load_model`) is a joblib file of the
-model with the mill file's SHA-256 and the versions of ident, scikit-learn and
-numpy it was trained with; loading refuses a different mill file or different
-versions with :class:`~ident.errors.ModelArtifactError`.  The default cache is
-``$IDENT_CACHE/models/<sha256>.joblib`` (or ``~/.cache/ident/models``).
+model with the mill's content hash (:meth:`~ident.description.Mill.content_hash`,
+the parsed description's values: a comment or a reformatted file keeps it, any
+changed value changes it) and the versions of ident, scikit-learn and numpy it
+was trained with; loading refuses another mill or other versions with
+:class:`~ident.errors.ModelArtifactError`.  The default cache is
+``$IDENT_CACHE/models/<content hash>.joblib`` (or ``~/.cache/ident/models``).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ __all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "sa
 
 #: a decision whose probability is below this is reported ``uncertain``
 UNCERTAIN_PROBABILITY = 0.6
-ARTEFACT_FORMAT = 1
+ARTEFACT_FORMAT = 2  # 2: keyed by the mill's content hash, not its file's bytes
 
 
 def library_versions() -> dict[str, str]:
@@ -148,7 +150,8 @@ class DiagnosticModel:
 
     Attributes
     ----------
-    mill_name, mill_sha256 : str
+    mill_name, mill_hash : str
+        The mill's name and :meth:`~ident.description.Mill.content_hash`.
     versions : dict
         ``ident``, ``scikit-learn``, ``numpy`` versions at training.
     feature_names : tuple of str
@@ -163,7 +166,7 @@ class DiagnosticModel:
     """
 
     mill_name: str
-    mill_sha256: str
+    mill_hash: str
     versions: dict[str, str]
     feature_names: tuple[str, ...]
     targets: dict[str, TargetModel]
@@ -275,10 +278,11 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
     """
     from threadpoolctl import threadpool_limits
 
-    if library.mill_sha256 != mill.sha256:
+    if library.mill_hash != mill.content_hash():
         raise ModelArtifactError(
-            f"the library was simulated from mill file sha256 {library.mill_sha256[:16]}, "
-            f"not from {mill.source or mill.name} (sha256 {mill.sha256[:16]})")
+            f"the library was simulated from another mill description (content hash "
+            f"{library.mill_hash[:16]}), not from {mill.source or mill.name} "
+            f"({mill.content_hash()[:16]})")
     X_all = library.features
     cols = list(X_all.columns)
     seen = {c.element for c in mill.torque_channels()}
@@ -321,7 +325,7 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
                 importances=_importances(reg, X, yr, names, random_state=random_state),
                 class_medians=med, observable=(tid in seen) if kind == "element" else True,
                 blend=float(blend))
-    return DiagnosticModel(mill_name=mill.name, mill_sha256=mill.sha256,
+    return DiagnosticModel(mill_name=mill.name, mill_hash=mill.content_hash(),
                            versions=library_versions(), feature_names=tuple(X_all.columns),
                            targets=targets, n_samples=len(library), ranges=library.ranges,
                            options=library.options, random_state=random_state)
@@ -330,10 +334,14 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
 # ---- artefact ------------------------------------------------------------------------------
 
 def model_cache_path(mill: Mill) -> Path:
-    """Default artefact path of a mill: ``$IDENT_CACHE/models/<sha256>.joblib``."""
+    """Default artefact path of a mill: ``$IDENT_CACHE/models/<content hash>.joblib``.
+
+    Keyed by :meth:`~ident.description.Mill.content_hash`: editing a comment or the
+    file's layout finds the same model; changing any value trains a new one.
+    """
     base = os.environ.get("IDENT_CACHE") or os.path.join(os.path.expanduser("~"), ".cache",
                                                          "ident")
-    return Path(base) / "models" / f"{mill.sha256}.joblib"
+    return Path(base) / "models" / f"{mill.content_hash()}.joblib"
 
 
 def save_model(model: DiagnosticModel, path: str | Path) -> Path:
@@ -352,7 +360,7 @@ def save_model(model: DiagnosticModel, path: str | Path) -> Path:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        joblib.dump({"format": ARTEFACT_FORMAT, "mill_sha256": model.mill_sha256,
+        joblib.dump({"format": ARTEFACT_FORMAT, "mill_hash": model.mill_hash,
                      "versions": dict(model.versions), "model": model}, tmp, compress=3)
         os.replace(tmp, path)
     except BaseException:
@@ -367,7 +375,7 @@ def load_model(path: str | Path, mill: Mill) -> DiagnosticModel:
     Raises
     ------
     ModelArtifactError
-        Unreadable file, another mill file (hash) or other library versions.
+        Unreadable file, another mill (content hash) or other library versions.
     """
     import joblib
 
@@ -383,11 +391,11 @@ def load_model(path: str | Path, mill: Mill) -> DiagnosticModel:
             not isinstance(data.get("model"), DiagnosticModel):
         raise ModelArtifactError(f"{path} is not an ident diagnosis model (format "
                                  f"{ARTEFACT_FORMAT})")
-    found = data["mill_sha256"]
-    if found != mill.sha256:
+    found, want = data["mill_hash"], mill.content_hash()
+    if found != want:
         raise ModelArtifactError(
-            f"model artefact {path} was trained for mill file sha256 {found}, but "
-            f"{mill.source or mill.name} has sha256 {mill.sha256}; retrain with "
+            f"model artefact {path} was trained for another mill description (content "
+            f"hash {found}), but {mill.source or mill.name} has {want}; retrain with "
             f"'ident train --mill {mill.source or 'MILL'} --out {path}'")
     now = library_versions()
     diff = {k: (v, now.get(k)) for k, v in data["versions"].items() if now.get(k) != v}
