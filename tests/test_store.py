@@ -48,6 +48,21 @@ def test_foreign_sqlite_file_is_refused(tmp_path):
         open_store(f"sqlite:///{db}", create=False)
 
 
+def test_a_reader_does_not_write_the_version_of_a_store_being_created(tmp_path):
+    """A poller (``create=False``) racing the campaign that creates the store must not
+    insert the schema version itself: the creator's insert then failed UNIQUE (CI)."""
+    url = f"sqlite:///{tmp_path}/s.db"
+    S.metadata.create_all(sa.create_engine(url))  # tables made, version not yet written
+    with pytest.raises(StoreError, match="being created"):
+        open_store(url, create=False)
+    with sa.create_engine(url).connect() as c:
+        assert c.execute(sa.select(sa.func.count()).select_from(S.schema_info)).scalar_one() == 0
+    open_store(url).close()  # the creator still succeeds
+    with sa.create_engine(url).begin() as c:  # and a second creator reads its version
+        assert c.execute(sa.select(S.schema_info.c.value)).scalar_one() == str(S.SCHEMA_VERSION)
+    open_store(url).close()
+
+
 def test_schema_version_mismatch(tmp_path):
     url = f"sqlite:///{tmp_path}/s.db"
     open_store(url).close()

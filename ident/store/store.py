@@ -187,14 +187,26 @@ class Store:
         if not create and "schema_info" not in present:
             raise StoreError(f"{self.url} is not an ident results store (no schema_info table)")
         if create:
-            S.metadata.create_all(self.engine)
-        with self.engine.begin() as conn:
-            row = conn.execute(sa.select(S.schema_info.c.value)
-                               .where(S.schema_info.c.key == "schema_version")).first()
-            if row is None:
-                conn.execute(S.schema_info.insert().values(key="schema_version",
-                                                           value=str(S.SCHEMA_VERSION)))
+            try:
+                S.metadata.create_all(self.engine)
+            except (sa.exc.OperationalError, sa.exc.ProgrammingError) as exc:
+                if "already exists" not in str(exc):
+                    raise
+                S.metadata.create_all(self.engine)  # another process created some tables first
+        row = self._schema_row()
+        if row is None:
+            if not create:
+                raise StoreError(f"{self.url} is being created (no schema version written "
+                                 f"yet); open it again in a moment")
+            try:
+                with self.engine.begin() as conn:
+                    conn.execute(S.schema_info.insert().values(key="schema_version",
+                                                               value=str(S.SCHEMA_VERSION)))
                 return
+            except sa.exc.IntegrityError:
+                # another process created the store at the same moment: read its version
+                row = self._schema_row()
+        with self.engine.begin() as conn:
             try:
                 version = int(row[0])
             except ValueError:
@@ -204,6 +216,11 @@ class Store:
                                  f"reads version {S.SCHEMA_VERSION} (and migrates older ones)")
             if version < S.SCHEMA_VERSION:
                 self._migrate(conn, version)
+
+    def _schema_row(self) -> Any:
+        with self.engine.connect() as conn:
+            return conn.execute(sa.select(S.schema_info.c.value)
+                                .where(S.schema_info.c.key == "schema_version")).first()
 
     def _migrate(self, conn: Connection, version: int) -> None:
         """Bring a store of an older schema version up to :data:`~ident.store.schema.SCHEMA_VERSION`.
