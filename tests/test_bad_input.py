@@ -297,6 +297,17 @@ def test_require_channels(no_c57, good_csv, mill):
         require_channels(read_recording(no_c57, mill, warn=False), mill, "discrepancy")
 
 
+def test_a_campaign_records_the_missing_channel_as_a_failed_fit(no_c57, mill):
+    """In a campaign the recording fails at its fit, naming file and channel; the segments stay."""
+    from ident.store.process import Settings, process_recording
+
+    out = process_recording(no_c57, mill, Settings(diagnose=False))
+    assert (out.status, out.stage) == ("failed", "fit")
+    assert out.error.startswith(f"fit: {no_c57}, channel 'T_C57': missing channel: the mill "
+                                "file maps torque channel 'T_C57' (element C57)")
+    assert len(out.segments) >= 2 and out.fit is None
+
+
 # ---- (d) an unknown key or table in the mill file -------------------------------------------
 
 @pytest.mark.parametrize("old, new, match", [

@@ -160,6 +160,9 @@ def test_out_of_range_recording_is_uncertain(mill, tiny_model, tiny_library):
 
 def test_artefact_roundtrip_and_refusals(mill, tiny_model, tmp_path):
     p = save_model(tiny_model, tmp_path / "m.joblib")
+    from ident.io.writers import new_file_mode
+
+    assert p.stat().st_mode & 0o777 == new_file_mode()  # the umask's, not mkstemp's 0600
     m2 = load_model(p, mill)
     assert m2.mill_hash == mill.content_hash() and m2.feature_names == tiny_model.feature_names
     other = mill.with_overrides({"C46.k": 2.0e7})

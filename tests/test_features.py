@@ -147,6 +147,7 @@ def test_linear_mill_matches_its_baseline(mill, reference):
         assert abs(bites[f"{e}.lag_ms"].median()) < 1.0
     s = feature_summary(tf)
     assert s["channel"] == "C12" and len(s["frequencies_hz"]) == 6
+    assert feature_summary(tf, mill=mill)["channel"] == "C46"  # nearest the rolls
     assert s["frequencies_hz"][0] == pytest.approx(12.0, abs=0.1)
 
 

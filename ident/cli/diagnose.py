@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     fv = recording_features(tf)
     diag = diagnose_features(model, fv)
     out = {"mill": mill.name, "recording": str(rec_path)}
-    out.update(diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf),
+    out.update(diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf, mill=mill),
                               warnings=[i.message for i in rec.issues]))
     out["uncertain"] = any(v["uncertain"] for v in (*out["elements"].values(),
                                                      *out["bearings"].values()))

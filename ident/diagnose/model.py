@@ -42,6 +42,7 @@ import pandas as pd
 from ..description import Mill
 from ..errors import ModelArtifactError
 from ..features.extract import FeatureOptions
+from ..io.writers import new_file_mode
 from .estimators import GapRegressor, WearClassifier, shrink_to_uniform
 from .library import Library, LibraryRanges
 from .states import STATES
@@ -345,7 +346,7 @@ def model_cache_path(mill: Mill) -> Path:
 
 
 def save_model(model: DiagnosticModel, path: str | Path) -> Path:
-    """Write the artefact atomically (joblib, compressed).
+    """Write the artefact atomically (joblib, compressed), with the umask's permissions.
 
     Returns
     -------
@@ -358,7 +359,10 @@ def save_model(model: DiagnosticModel, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    try:
+        os.fchmod(fd, new_file_mode())  # as a plain open() would (mkstemp gives 0600)
+    finally:
+        os.close(fd)
     try:
         joblib.dump({"format": ARTEFACT_FORMAT, "mill_hash": model.mill_hash,
                      "versions": dict(model.versions), "model": model}, tmp, compress=3)

@@ -597,12 +597,14 @@ def recording_features(tf: TransientFeatures) -> pd.Series:
     return pd.Series(out, dtype=float)
 
 
-def feature_summary(tf: TransientFeatures, element_id: str | None = None) -> dict[str, list[float]]:
+def feature_summary(tf: TransientFeatures, element_id: str | None = None, *,
+                    mill: Mill | None = None) -> dict[str, list[float]]:
     """The ``features`` block of ``ident diagnose`` (cli.md).
 
     Median over the bites of the amplitude ratio (linear, measured over
     baseline) and the phase shift (deg) at each natural frequency, in the
-    channel nearest the rolls unless ``element_id`` names another.
+    channel nearest the rolls of ``mill`` unless ``element_id`` names another
+    (without ``mill``: the first channel).
 
     Returns
     -------
@@ -616,7 +618,9 @@ def feature_summary(tf: TransientFeatures, element_id: str | None = None) -> dic
     if len(bites) == 0:
         bites = t
     if element_id is None:
-        element_id = tf.channels[0] if tf.channels else ""
+        near = nearest_load_elements(mill, tf.channels) if mill is not None and tf.channels \
+            else tf.channels
+        element_id = near[0] if near else ""
     ratio, phase = [], []
     for lab in labels:
         col = f"{element_id}.{lab}"

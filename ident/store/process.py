@@ -223,7 +223,7 @@ def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
         raise IdentError("the load steps found are too close together or too close to the "
                          "recording's ends to analyse")
     diag = diagnose_features(model, recording_features(tf), explain=False)
-    return diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf))
+    return diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf, mill=mill))
 
 
 def _finding(stage: str, kind: str, message: str) -> dict[str, Any]:
@@ -342,6 +342,9 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
             kw = {} if settings.family is None else {"family": settings.family}
             if settings.starts:
                 kw["starts"] = [dict(settings.starts)]
+            from ..io.channels import require_channels
+
+            stage("fit", lambda: require_channels(rec, mill, "fit"))  # names file and channel
             windows = stage("fit", lambda: windows_from_recording(rec, mill, use))
             parts["fit"] = jsonable(stage("fit", lambda: fit_gaps(mill, windows, **kw)).to_dict())
             if settings.per_transient:
