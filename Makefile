@@ -13,7 +13,7 @@ PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | sha256sum | cut -c1-12)
 JOBS   ?= 2
 
-.PHONY: venv demo test test-fast bench sample-data clean constraints validate
+.PHONY: venv demo test test-fast bench sample-data clean constraints validate validate-campaign
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -39,6 +39,11 @@ test-fast: $(STAMP)
 # VALIDATE_ARGS="--plant 16 --ident 4" sets the sample.
 validate: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m validation.fit_study $(VALIDATE_ARGS)
+
+# A 12-recording wear campaign from the independent generator through the campaign, the
+# report and its status JSON (issue 13's figures); out/validate/campaign.
+validate-campaign: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m validation.campaign_study $(CAMPAIGN_ARGS)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks

@@ -62,7 +62,9 @@ def test_daily_is_incremental_and_locked(tmp_path, mill, mill_path, capsys):
     report = tmp_path / "www" / "report.html"
     args = ["--incoming", str(incoming), "--mill", str(mill_path), "--store", store,
             "--report", str(report), "--archive", str(tmp_path / "archive"), "--workers", "0",
-            "--min-age-s", "0", "--no-fit"]  # the job's mechanics; test_demo fits for real
+            "--min-age-s", "0", "--no-fit", "--no-diagnose"]
+    # the job's mechanics (without --no-diagnose it trained the full wear model first: 200 s);
+    # test_demo fits and diagnoses for real, test_diagnose trains on first use
     assert daily.run(args) == 3  # the malformed file is stored as failed and reported
     assert report.exists() and len(list((tmp_path / "archive").glob("report-*.html"))) == 1
     # the next day: one new recording, only it is processed

@@ -231,12 +231,12 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = [json.loads(x) for x in out.read_text().splitlines()] if out.exists() else []
     done = {(r["gen"], r["mill"], r["seed"]) for r in rows}
-    jobs = []
-    for mill in args.mills.split(","):
-        for gen, n in (("plant", args.plant), ("ident", args.ident)):
-            for k in range(n):
+    jobs = []  # round robin over mills and generators: a study cut short still has them all
+    for k in range(max(args.plant, args.ident)):
+        for mill in args.mills.split(","):
+            for gen, n in (("plant", args.plant), ("ident", args.ident)):
                 key = (gen, mill, args.seed + k)
-                if key not in done:
+                if k < n and key not in done:
                     jobs.append(key)
     if not args.summary_only and jobs:
         tmp = out.parent / "recordings"
