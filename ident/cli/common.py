@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..description import Mill
-from ..errors import IdentError, MillFileError
+from ..errors import MillFileError
 from ..io.millfile import load_mill
 from ..io.channels import require_channels
 from ..io.writers import AtomicFile
@@ -81,8 +81,6 @@ def parse_sets(items: list[str]) -> dict[str, Any]:
             val = v.strip()
         out[k.strip()] = val
     return out
-
-
 
 
 def to_jsonable(obj: Any) -> Any:
