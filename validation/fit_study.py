@@ -105,14 +105,17 @@ def _fit_row(res: Any, mill: Any, gaps: dict[str, float], start: str, seconds: f
         els[eid] = {"truth": gaps.get(eid, 0.0), "gap": el.gap, "ci": list(el.gap_ci95),
                     "identifiable": el.identifiable, "identified": el.identified,
                     "reason": el.reason, "measured": eid in measured,
-                    "window_z": el.window_z}
+                    "window_z": el.window_z, "se": el.gap_se, "seen_by": list(el.seen_by),
+                    "window_moves": list(el.window_moves)}
     band = res.band.ratio if res.band is not None else {}
     rel = res.band.relative if res.band is not None else {}
     costs = [s["cost"] for s in res.solver.starts if s.get("cost") is not None]
     return {"start": start, "cost": min(costs) if costs else None,
             "converged": res.converged, "band_ratio": dict(band), "relative": dict(rel),
             "noise_ratio": res.noise_ratio, "seconds": seconds, "elements": els,
-            "path": res.solver.path}
+            "path": res.solver.path,
+            "runs": [{k: s.get(k) for k in ("path", "cost", "converged", "gaps_end", "seconds")}
+                     for s in res.solver.starts]}
 
 
 def run_one(gen: str, mill_name: str, seed: int, directory: str) -> dict:

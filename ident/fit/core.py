@@ -320,9 +320,10 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     warns += list(a.warnings)
     nrmse_ch = _nrmse_channels(r_fit, model.ny)
     starts_rep = tuple({"start": k, "path": pth, "gaps": _gap_dict(model, sv),
-                        "cost": _fl(i.cost), "status": i.status, "converged": bool(i.success),
+                        "gaps_end": _gap_dict(model, e.shared), "cost": _fl(i.cost),
+                        "status": i.status, "converged": bool(i.success),
                         "iterations": int(i.iterations), "seconds": _fl(i.seconds)}
-                       for (k, sv, _, i, pth) in runs)
+                       for (k, sv, e, i, pth) in runs)
     solver = SolverReport(
         status=info.status, converged=converged, iterations=info.iterations,
         seconds=time.perf_counter() - t_all, method=method.name, start=k_best,

@@ -74,6 +74,9 @@ class ElementFit:
     window_z : float
         Largest change of the gap when one window is left out, in standard
         deviations of that change (:func:`ident.fit.uncertainty.window_influence`).
+    window_moves : tuple of float
+        Change of the gap when each window is left out, rad (one Gauss-Newton
+        step; NaN where the other windows cannot see it).
     """
 
     gap: float
@@ -91,6 +94,7 @@ class ElementFit:
     reason: str = ""
     seen_by: tuple[str, ...] = ()
     window_z: float = math.nan
+    window_moves: tuple[float, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -109,6 +113,7 @@ class ElementFit:
             **({} if self.identified else {"reason": self.reason}),
             "seen_by": list(self.seen_by),
             "window_z": _f(self.window_z),
+            "window_moves": [_f(v) for v in self.window_moves],
         }
 
 
@@ -131,8 +136,8 @@ class SolverReport:
     start : int
         Index of the winning start in ``starts``.
     starts : tuple of dict
-        Per start and path: start index, path, initial gaps, final cost, status,
-        iterations, seconds.
+        Per start and path: start index, path, initial gaps (``gaps``), the gaps
+        it ended at (``gaps_end``), final cost, status, iterations, seconds.
     path : str
         How the winner got there: ``continued`` (horizon and smoothing-width
         continuation), ``held`` (the continuation with the gaps held at the

@@ -222,10 +222,14 @@ def verdicts(elements: Mapping[str, Any], *, model: Any, problem: Any, check: Ba
                               f"{1e3 * float(d[k]):+.2f} mrad ({abs(float(z[k])):.1f} standard "
                               f"deviations; at most {Z_WINDOWS:g} or {1e3 * tol:.2f} mrad)")
         zmax = math.nan
-        if moves is not None and eid in moves and np.any(np.isfinite(moves[eid][1])):
-            zmax = float(np.nanmax(np.abs(moves[eid][1])))
+        dmoves: tuple[float, ...] = ()
+        if moves is not None and eid in moves:
+            dmoves = tuple(float(v) for v in moves[eid][0])
+            if np.any(np.isfinite(moves[eid][1])):
+                zmax = float(np.nanmax(np.abs(moves[eid][1])))
         out[eid] = replace(el, identified=not reason, reason=reason,
-                           seen_by=tuple(names[c] for c in seen), window_z=zmax)
+                           seen_by=tuple(names[c] for c in seen), window_z=zmax,
+                           window_moves=dmoves)
     return out
 
 
