@@ -214,6 +214,7 @@ def _headline(s: MillSection) -> str:
 #: Plain words for the codes the stages store (solver statuses, finding kinds, error types).
 SOLVER_WORDS = {"Solve_Succeeded": "converged",
                 "Solved_To_Acceptable_Level": "converged (to the acceptable tolerance)",
+                "Stationary_At_Limit": "converged (cost stationary at the iteration limit)",
                 "Maximum_Iterations_Exceeded": "stopped: iteration limit",
                 "Maximum_CpuTime_Exceeded": "stopped: time limit",
                 "Maximum_WallTime_Exceeded": "stopped: time limit",
