@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import ident
-from ident.fit.model import build_fit_model, drag_masses, raised_cosine, skewed_cosine, static_state
+from ident.fit.model import (build_fit_model, drag_groups, drag_masses, raised_cosine,
+                             skewed_cosine, static_state)
 
 
 @pytest.fixture(scope="module")
@@ -77,3 +78,39 @@ def test_skewed_cosine_is_a_c1_ramp():
         assert slope[inside].max() < 3 * np.pi / 2  # finite: no kink
     # a positive skew front-loads the ramp (half done before half the time)
     assert skewed_cosine(0.35, 0.9) > 0.5 > skewed_cosine(0.35, 0.0)
+
+
+def test_each_groups_drag_is_spread_over_its_shafts_by_inertia(mill):
+    """hsm-f1: T_C12's group is Q2/Q3, T_C34's Q4/Q5 (named Q3.drag, Q5.drag), shares J/sum(J).
+
+    At rest with the load L, the unmeasured mesh C45 (Q4 -> Q5) carries L/2 and Q5's
+    share of its group's drag only, the coupling C34 the whole group's."""
+    groups = dict(drag_groups(mill))
+    assert list(groups) == ["Q3", "Q5"]
+    J = {m.id: m.J for m in mill.masses}
+    for rep, shares in groups.items():
+        assert sum(w for _, w in shares) == pytest.approx(1.0)
+        tot = sum(J[mid] for mid, _ in shares)
+        for mid, w in shares:
+            assert w == pytest.approx(J[mid] / tot)
+    assert [mid for mid, _ in groups["Q3"]] == ["Q2", "Q3"]
+    assert [mid for mid, _ in groups["Q5"]] == ["Q4", "Q5"]
+    m = build_fit_model(mill, nuisance=True)
+    shared = np.zeros(m.n_shared)
+    for e in mill.elements:
+        shared[m.shared_names.index(f"{e.id}.gap")] = e.gap
+    shared[m.shared_names.index("Q3.drag")] = 4000.0
+    shared[m.shared_names.index("Q5.drag")] = 2000.0
+    assert sum(m.drag_torques(shared).values()) == pytest.approx(6000.0)
+    window = np.zeros(m.n_window)
+    level = 100_000.0
+    window[:2] = level
+    x = static_state(m, level, shared, window)
+    p = m.pmap(shared, window, 1e-4)
+    tau = np.asarray(m.driveline.out(x, level, p, 0.0)).ravel()
+    out = {n[4:]: v for n, v in zip(m.driveline.output_names, tau) if n.startswith("tau:")}
+    w5 = dict(groups["Q5"])["Q5"]
+    assert out["C34"] == pytest.approx(level + 2000.0, rel=1e-6)
+    assert out["C45"] == pytest.approx(0.5 * level + w5 * 2000.0, rel=1e-6)
+    assert out["C12"] == pytest.approx(level + 6000.0, rel=1e-6)
+    assert np.max(np.abs(np.asarray(m.driveline.rhs(x, level, p, 0.0)))) < 1e-6

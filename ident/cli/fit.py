@@ -81,9 +81,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "freed at the final width, and keep the better: 'auto' (default) only "
                         "when the continued fit stays above the noise floor, 'always' (e.g. "
                         "from the last identified gaps; about twice the time) or 'never'")
-    p.add_argument("--nuisance", action="store_true",
-                   help="also fit per-window channel offsets, drag torques and the load "
-                        "ramps' skew (plant recordings; slower)")
+    p.add_argument("--nuisance", action=argparse.BooleanOptionalAction, default=True,
+                   help="fit the plant nuisances with the gaps: per-window channel offsets, "
+                        "drag torques spread over the shafts and the load ramps' skew "
+                        "(default; --no-nuisance leaves them out)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
                    help="wall seconds after which no further start or path is begun "
                         "(default 1800; each solver call is also bounded in iterations and "

@@ -71,7 +71,7 @@ from ..model.effects import Drag
 from ..model.linear import angles_from_deflections, incidence, stiffness_matrix
 from ..model.scenario import nominal_torque
 
-__all__ = ["FitModel", "build_fit_model", "drag_masses", "LOAD_PARAMS", "GAP_MAX",
+__all__ = ["FitModel", "build_fit_model", "drag_masses", "drag_groups", "LOAD_PARAMS", "GAP_MAX",
            "DRAG_MAX"]
 
 #: Per-window load parameters, in order.
@@ -138,11 +138,22 @@ class FitModel:
     effects: tuple = field(default=())
     drag_masses: tuple[str, ...] = ()
     nuisance: bool = False
+    drag_shares: tuple[tuple[tuple[str, float], ...], ...] = ()
 
     def drag(self, shared: np.ndarray) -> dict[str, float]:
-        """Drag torque per mass, N*m (reduced), from the shared vector."""
+        """Drag torque per group, N*m (reduced), keyed by the group's mass in
+        :attr:`drag_masses` (the parameter ``"Q3.drag"``), from the shared vector."""
         return {mid: float(shared[self.shared_names.index(f"{mid}.drag")])
                 for mid in self.drag_masses}
+
+    def drag_torques(self, shared: np.ndarray) -> dict[str, float]:
+        """Drag torque per mass, N*m (reduced): each group's spread over its masses
+        (:func:`drag_groups`)."""
+        out: dict[str, float] = {}
+        for total, shares in zip(self.drag(shared).values(), self.drag_shares):
+            for mid, w in shares:
+                out[mid] = out.get(mid, 0.0) + w * total
+        return out
 
     @property
     def offset_index(self) -> tuple[int, ...]:
@@ -290,11 +301,14 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
         raise FitError(f"mill '{mill.name}' has no torque channel: nothing to fit. Expected at "
                        "least one [[channel]] with quantity = \"torque\".")
     smoothing = "param" if family is Family.G1 else None
-    dmasses = drag_masses(mill) if nuisance else ()
+    groups = drag_groups(mill) if nuisance else ()
+    dmasses = tuple(rep for rep, _ in groups)
+    shares = tuple(tuple(sh) for _, sh in groups)
+    dall = tuple(dict.fromkeys(mid for sh in shares for mid, _ in sh))
     drv = build_driveline(mill, ModelOptions(family=family, smoothing=smoothing,
                                              smoothing_kind=smoothing_kind,
                                              effects=tuple(effects) + tuple(
-                                                 Drag(mid) for mid in dmasses)))
+                                                 Drag(mid) for mid in dall)))
     names: list[str] = []
     lb: list[float] = []
     ub: list[float] = []
@@ -352,8 +366,11 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
             p[pidx[f"{e.id}.a0"]] = a0
             p[pidx[f"{e.id}.sigma"]] = sigma
             p[pidx[f"{e.id}.shift"]] = ca.SX(0.0)
-    for mid in dmasses:
-        p[pidx[Drag(mid).param_key("torque")]] = shared[names.index(f"{mid}.drag")]
+    for mid in dall:
+        p[pidx[Drag(mid).param_key("torque")]] = ca.SX(0.0)
+    for rep, sh in zip(dmasses, shares):
+        for mid, wgt in sh:
+            p[pidx[Drag(mid).param_key("torque")]] += wgt * shared[names.index(f"{rep}.drag")]
     if "smoothing" in pidx:
         p[pidx["smoothing"]] = w
     pmap = ca.Function("pmap", [shared, win, w], [ca.vertcat(*p)], ["shared", "window", "w"],
@@ -383,7 +400,7 @@ def build_fit_model(mill: Mill, *, family: Family | str = Family.G1, effects: Se
                     shared_scale=np.array(scale), window_names=tuple(wnames), measured=measured,
                     pmap=pmap, load=load, y=y, gap_max=gap_max, x0_fixed=(im,),
                     motor_index=im, kgap_elements=kgap, effects=tuple(effects),
-                    drag_masses=dmasses, nuisance=bool(nuisance))
+                    drag_masses=dmasses, nuisance=bool(nuisance), drag_shares=shares)
 
 
 def _widened(e: Any) -> Any:
@@ -417,7 +434,7 @@ def static_state(model: FitModel, level: float, shared: np.ndarray, window: np.n
     for mid, s in zip(mill.load.masses, mill.load.share):
         f[mill.mass_index(mid)] -= s * level
     f[im] += level
-    for mid, d in model.drag(shared).items():  # the motor supplies the losses too
+    for mid, d in model.drag_torques(shared).items():  # the motor supplies the losses too
         f[mill.mass_index(mid)] -= d
         f[im] += d
     theta_lin = np.linalg.lstsq(K, f, rcond=None)[0]
@@ -442,20 +459,31 @@ def static_state(model: FitModel, level: float, shared: np.ndarray, window: np.n
 
 
 def drag_masses(mill: Mill) -> tuple[str, ...]:
-    """Where the fit's drag torques act: one mass per measured element that has losses to carry.
+    """Where the fit's drag parameters are named: one mass per group of :func:`drag_groups`
+    (the group's mass farthest from the motor), in the order of the measured elements."""
+    return tuple(rep for rep, _ in drag_groups(mill))
+
+
+def drag_groups(mill: Mill) -> tuple[tuple[str, tuple[tuple[str, float], ...]], ...]:
+    """The fit's drag torques: one per measured element that has losses to carry.
 
     For each measured element (torque channel), its *group* is the masses on
     its side away from the motor that are neither load masses nor beyond a
     further measured element: the masses whose losses it alone carries among
     the channels.  Static torques tell the groups apart, not the masses within
-    one, so each group gets one drag torque, at its mass farthest from the
-    motor (every element between the channel and that mass carries it).  A
-    group of no mass (a channel next to the rolls) gets none.
+    one, so each group gets one drag torque, spread over its masses in
+    proportion to their inertia: bearing and windage losses grow with the
+    size of the rotating parts.  (Concentrated on one mass instead, a plant
+    recording whose losses sat on every shaft -- ``validation.plantsim``,
+    hsm-f1 seed 1000 -- kept twice the noise in the spindles' transient band.)
+    A group of no mass (a channel next to the rolls) gets none.
 
     Returns
     -------
-    tuple of str
-        Mass ids, in the order of the measured elements.
+    tuple of (str, tuple of (str, float))
+        Per group, in the order of the measured elements: the mass that names
+        its parameter (``"Q3.drag"``: the group's mass farthest from the
+        motor) and each member mass with its share of the torque (summing to 1).
     """
     im = mill.mass_index(mill.motor.mass)
     n = len(mill.masses)
@@ -489,7 +517,7 @@ def drag_masses(mill: Mill) -> tuple[str, ...]:
     idx = {e.id: j for j, e in enumerate(mill.elements)}
     sides = {eid: beyond(idx[eid]) for eid in measured}
     loads = {mill.mass_index(m) for m in mill.load.masses}
-    out = []
+    out: dict[str, tuple[tuple[str, float], ...]] = {}
     for eid in measured:
         group = set(sides[eid]) - loads
         for other in measured:
@@ -497,8 +525,13 @@ def drag_masses(mill: Mill) -> tuple[str, ...]:
                 group -= sides[other]
         if group:
             far = max(group, key=lambda i: (depth[i], i))
-            out.append(mill.masses[far].id)
-    return tuple(dict.fromkeys(out))
+            members = sorted(group)
+            J = np.array([mill.masses[i].J for i in members])
+            out.setdefault(mill.masses[far].id, tuple(
+                (mill.masses[i].id, float(w)) for i, w in zip(members, J / J.sum())))
+    return tuple(out.items())
+
+
 
 
 def _gaps_and_contacts(model: FitModel, shared: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
