@@ -31,6 +31,7 @@ import pytest
 from ident.fit import (Collocation, SingleShooting, assess, build_fit_model, fit_gaps,
                        make_problem, random_gaps, synthetic_case)
 from ident.fit.result import NOISE_RATIO_MAX
+from ident.fit.uncertainty import Z95
 
 MEASURED = ("C12", "C34", "C46", "C57")
 FINAL = 3e-5
@@ -138,11 +139,12 @@ def test_measured_gaps_are_accurate_at_the_optimum(stat_fits):
 
 @pytest.mark.slow
 def test_interval_agrees_with_profile_likelihood(stat_fits):
-    """The Wald interval of C46's gap against the profile likelihood.
+    """The noise part of C46's Wald interval against the profile likelihood.
 
-    At the interval's ends, with every other parameter refitted, twice the
-    rise of the noise-weighted cost should be chi2(1)'s 95 % point, 3.84;
-    measured 3.3-4.4 (the profile is nearly quadratic over the interval).
+    At ``gap +- 1.96 gap_se_noise`` (the reported interval adds the model
+    error's part, ``gap_se_model``), with every other parameter refitted,
+    twice the rise of the noise-weighted cost should be chi2(1)'s 95 % point,
+    3.84; measured 3.3-4.4 (the profile is nearly quadratic over the interval).
     """
     case, problem, sh, est, info, a = stat_fits[0]
     model = problem.model
@@ -158,7 +160,9 @@ def test_interval_agrees_with_profile_likelihood(stat_fits):
     free = np.ones(model.n_shared, dtype=bool)
     free[j] = False
     held = problem.with_free(free)
-    for end in a.elements["C46"].gap_ci95:
+    el = a.elements["C46"]
+    assert el.gap_se == pytest.approx(math.hypot(el.gap_se_noise, el.gap_se_model))
+    for end in (el.gap - Z95 * el.gap_se_noise, el.gap + Z95 * el.gap_se_noise):
         shared = est.shared.copy()
         shared[j] = end
         from dataclasses import replace

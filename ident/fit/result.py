@@ -46,7 +46,16 @@ class ElementFit:
     gap_ci95 : (float, float)
         95 % interval of ``gap``, rad, clipped to ``[0, gap_max]``.
     gap_se : float
-        Standard error of ``gap``, rad (``inf`` when the data cannot see it).
+        Standard error of ``gap``, rad (``inf`` when the data cannot see it):
+        ``hypot(gap_se_noise, gap_se_model)``; ``gap_ci95`` is ``gap`` +- 1.96
+        of it, clipped.
+    gap_se_noise : float
+        The sensor noise's part, rad: the sandwich covariance at the optimum
+        (:func:`ident.fit.uncertainty.covariance`).
+    gap_se_model : float
+        The model error's part, rad (:func:`ident.fit.uncertainty.model_error_se`):
+        a floor of the model's own accuracy plus the transient-band misfit left
+        above the noise on the channels that see the gap.
     gap_open : float
         Open part of the gap in the drive direction at the start of the first
         window, rad (0 when the element starts loaded).
@@ -74,6 +83,10 @@ class ElementFit:
     window_z : float
         Largest change of the gap when one window is left out, in standard
         deviations of that change (:func:`ident.fit.uncertainty.window_influence`).
+    basis : str
+        What the verdict rests on, in one line, when identified: the residual
+        at the noise, a small model error, or starts that agree
+        (:mod:`ident.fit.verdict`).
     window_moves : tuple of float
         Change of the gap when each window is left out, rad (one Gauss-Newton
         step; NaN where the other windows cannot see it).
@@ -95,6 +108,9 @@ class ElementFit:
     seen_by: tuple[str, ...] = ()
     window_z: float = math.nan
     window_moves: tuple[float, ...] = ()
+    basis: str = ""
+    gap_se_noise: float = math.nan
+    gap_se_model: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -103,14 +119,15 @@ class ElementFit:
             "gap_open": _f(self.gap_open),
             "gap_mm": _f(self.gap_mm),
             "params": {k: _f(v) for k, v in self.params.items()},
-            "gap_se": _f(self.gap_se),
+            "gap_se": _f(self.gap_se), "gap_se_noise": _f(self.gap_se_noise),
+            "gap_se_model": _f(self.gap_se_model),
             "gap_open_ci95": [_f(self.gap_open_ci95[0]), _f(self.gap_open_ci95[1])],
             "gap_open_windows": [_f(v) for v in self.gap_open_windows],
             "params_se": {k: _f(v) for k, v in self.params_se.items()},
             "identifiable": bool(self.identifiable),
             "gap_open_identifiable": bool(self.gap_open_identifiable),
             "identified": bool(self.identified),
-            **({} if self.identified else {"reason": self.reason}),
+            **({"basis": self.basis} if self.identified else {"reason": self.reason}),
             "seen_by": list(self.seen_by),
             "window_z": _f(self.window_z),
             "window_moves": [_f(v) for v in self.window_moves],
