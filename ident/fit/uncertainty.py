@@ -286,8 +286,13 @@ def window_influence(sens: Sensitivity, cov: Covariance) -> np.ndarray:
 MODEL_ERROR_FLOOR = 0.02
 
 #: Relative error of a gap per relative model error (RMS over the transient's RMS, the
-#: noise taken out) that the channels seeing it keep in the transient band.
-MODEL_ERROR_GAIN = 1.0
+#: noise taken out) that the channels seeing it keep in the transient band.  Over the
+#: 132 right gaps of ``make validate``'s seeds 1000-1011 whose channels kept more than
+#: 1 % of model error, |relative gap error| / excess had a median of 0.76, a 90th
+#: percentile of 2.5 and a 95th of 3.5: at a gain of 2 the model-error part alone
+#: covers 95 % of them at 95 % (81 % at a gain of 1).  Larger errors per excess occur:
+#: plant hsm-f1 4101 (tests/test_fit_plant.py) needs 2.5-4.2.
+MODEL_ERROR_GAIN = 2.0
 
 
 def model_error_se(gap: float, excess: float) -> float:
@@ -304,8 +309,8 @@ def model_error_se(gap: float, excess: float) -> float:
     90th percentile of 5-7 %, more where the misfit is larger.  The two
     constants were set on 24 recordings of both generators and both mills
     (``make validate``, seeds 1000-1011), where these intervals covered
-    93-100 % per generator and mill; the figures on seeds not used to set
-    them are in issue 12's note.
+    92-100 % per generator and mill; the figures on seeds not used to set
+    them (2000 onwards) are in issue 12's note.
 
     Parameters
     ----------

@@ -1,0 +1,123 @@
+"""Gap identification on recordings of the independent plant simulator (issue 12).
+
+The small version of ``make validate`` (``validation/fit_study.py``): plantsim was
+written from the specs alone -- its own physics (exact piecewise-linear steps at
+20 kHz, a PI speed loop, losses spread over the shafts, floating spindles), its own
+recording chain (anti-alias FIR or IIR filter and decimation, offsets, drift and
+random walk, 16-bit quantisation) and its own load ramps of four shapes -- so it is
+not the fit's model.  Its parameters are drawn at random from each seed; the seeds
+were not used to set any threshold of the fit (those were set on seeds 1000-1011
+of ``make validate`` and checked on 2000 onwards).
+
+Per mill one recording of two bars, fitted the way ``ident fit`` does (from the mill
+file's gaps).  Tolerances are the issue's: a gap is right within max(10 %, 0.3 mrad);
+of the directly measured gaps (7 here) at least 6 accepted and right, none accepted
+but wrong, and the 95 % intervals of the accepted ones cover the truth for at least
+6 of 7 (plant hsm-f1 4101 is a hard case: the model error biases C12, C34 and C57
+by 11-25 %, within the issue's 0.3 mrad; at a model-error gain of 1 three of its
+four intervals missed).
+
+Stability (item 7): the hot strip mill's recording refitted from starts nudged by
+1e-6, and a second noise draw of the same plant, give the same verdicts on the
+measured gaps, the same gaps within their 95 % intervals, and right gaps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+from ident import load_mill
+from ident.fit import fit_gaps, windows_from_recording
+from ident.fit.uncertainty import Z95
+from ident.io import read_recording
+from ident.segment import segment_transients
+from validation import plantsim
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+
+SEEDS = {"hsm-f1": 4101, "cold-s5": 4102}
+
+
+def tolerance(truth: float) -> float:
+    return max(0.1 * truth, 3e-4)
+
+
+def _windows(mill, draw, path):
+    rec = plantsim.simulate_plant(mill, draw)
+    plantsim.write_plant(rec, path)
+    r = read_recording(path, mill, warn=False)
+    w = windows_from_recording(r, mill, segment_transients(r, mill))
+    return w, {k: float(v["gap"]) for k, v in rec.truth["elements"].items()}
+
+
+@pytest.fixture(scope="module")
+def fits(repo_root, tmp_path_factory):
+    d = tmp_path_factory.mktemp("plantfit")
+    out = {}
+    for name, seed in SEEDS.items():
+        mill = load_mill(repo_root / "data" / "mills" / f"{name}.toml")
+        draw = plantsim.draw_plant(mill, np.random.default_rng(seed), accelerometers=False)
+        windows, truth = _windows(mill, draw, d / f"{name}-{seed}.csv")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = fit_gaps(mill, windows)
+        out[name] = (mill, draw, windows, truth, res)
+    return out
+
+
+def _measured(mill):
+    return [c.element for c in mill.torque_channels()]
+
+
+def _tally(fits):
+    right = wrong = covered = accepted = total = 0
+    rows = []
+    for name, (mill, _, _, truth, res) in fits.items():
+        assert res.converged, (name, res.solver.status)
+        for eid in _measured(mill):
+            el, g = res.elements[eid], truth[eid]
+            ok = abs(el.gap - g) <= tolerance(g)
+            total += 1
+            if el.identified:
+                accepted += 1
+                right += ok
+                wrong += not ok
+                covered += el.gap_ci95[0] <= g <= el.gap_ci95[1]
+            rows.append((name, eid, round(g * 1e3, 3), round(el.gap * 1e3, 3),
+                         [round(v * 1e3, 3) for v in el.gap_ci95], el.identified, el.reason))
+    return total, accepted, right, wrong, covered, rows
+
+
+def test_measured_gaps_are_accepted_and_right(fits):
+    total, accepted, right, wrong, _, rows = _tally(fits)
+    assert total == 7
+    assert right >= 6 and wrong == 0, rows
+
+
+def test_intervals_of_accepted_gaps_cover_the_truth(fits):
+    _, accepted, _, _, covered, rows = _tally(fits)
+    assert covered >= min(6, accepted), rows
+
+
+def test_a_nudged_start_and_another_noise_draw_give_the_same_answer(fits, tmp_path):
+    mill, draw, windows, truth, res = fits["hsm-f1"]
+    rng = np.random.default_rng(7)
+    nudged = {e.id: max(e.gap, 5e-4) * (1.0 + 1e-6 * rng.standard_normal())
+              for e in mill.elements}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        again = fit_gaps(mill, windows, starts=[nudged])
+        other_w, _ = _windows(mill, dataclasses.replace(draw, noise_seed=draw.noise_seed + 1),
+                              tmp_path / "other-noise.csv")
+        other = fit_gaps(mill, other_w)
+    for eid in _measured(mill):
+        a, b, c = res.elements[eid], again.elements[eid], other.elements[eid]
+        assert b.identified == a.identified and c.identified == a.identified, (eid, a.reason,
+                                                                                b.reason, c.reason)
+        # the same answer within what the fit says it knows
+        assert abs(b.gap - a.gap) <= Z95 * max(a.gap_se, b.gap_se), (eid, a.gap, b.gap)
+        assert abs(c.gap - truth[eid]) <= tolerance(truth[eid]), (eid, c.gap, truth[eid])
