@@ -12,6 +12,7 @@ import json
 import pytest
 import sqlalchemy as sa
 
+from ident.cli import main
 from ident.errors import MillFileError, RecordingError, StoreError
 from ident.store import Settings, discover, load_results, open_store, run_campaign
 from ident.store import schema as S
@@ -301,3 +302,21 @@ def test_the_cli_campaign_trains_the_mills_model_on_first_use(tmp_path, mill, mi
         assert len(calls) == 1
     finally:
         model_cache_path(mill).unlink(missing_ok=True)
+
+
+def test_settings_hash_keeps_old_keys_and_sees_new_ones(mill):
+    """Settings added later (nuisance, the fit budget) leave the hash of a default
+    run as it was, so a stored campaign is not redone; a changed value changes it."""
+    from ident.store import Settings, settings_hash
+    from ident.store.process import FIT_BUDGET_S
+
+    base = settings_hash(Settings(), mill)
+    assert "fit_budget_s" not in Settings().to_dict() and "nuisance" not in Settings().to_dict()
+    assert settings_hash(Settings(fit_budget_s=FIT_BUDGET_S), mill) == base
+    assert settings_hash(Settings(fit_budget_s=120.0), mill) != base
+    assert settings_hash(Settings(nuisance=True), mill) != base
+
+
+def test_campaign_cli_refuses_a_bad_fit_budget(tmp_path, mill_path):
+    assert main(["campaign", str(tmp_path), "--mill", str(mill_path), "--store",
+                 f"sqlite:///{tmp_path}/r.db", "--fit-budget", "0", "--quiet"]) == 2

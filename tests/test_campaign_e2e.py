@@ -16,8 +16,15 @@ import pytest
 
 from ident.cli import main
 from ident.report import build_report
-from ident.store import (available_stages, load_results, make_sample_campaign, open_store,
-                         run_campaign)
+from ident.store import (Settings, available_stages, load_results, make_sample_campaign,
+                         open_store, run_campaign)
+
+
+#: The campaign's fit budget, s.  From the designed gaps the day-14 recording's fit
+#: (spindles at 7.5 and 5.5 mrad against 2) ends in a local minimum and, with the default
+#: 600 s, restarts for over 10 minutes before the refit from day 7 identifies it; this
+#: test is about the pipeline, so the first pass stops earlier.
+FIT_BUDGET = 120.0
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +47,8 @@ def stored(sample, mill, tmp_path_factory):
         save_model(train_model(lib, mill, random_state=0, max_iter=30), cached)
     url = f"sqlite:///{tmp_path_factory.mktemp('e2e_db')}/results.db"
     try:
-        summary = run_campaign(sample.folder, mill, url, workers=2, progress=False)
+        summary = run_campaign(sample.folder, mill, url, workers=2, progress=False,
+                               settings=Settings(fit_budget_s=FIT_BUDGET))
         yield url, summary
     finally:
         cached.unlink(missing_ok=True)
@@ -129,7 +137,7 @@ def test_rerun_redoes_nothing_and_cli_exit_3(sample, stored, mill_path, capsys):
     with open_store(url) as st:
         before = st.count("recordings")
     assert main(["campaign", str(sample.folder), "--mill", str(mill_path), "--store", url,
-                 "--workers", "0", "--quiet"]) == 3
+                 "--workers", "0", "--fit-budget", str(FIT_BUDGET), "--quiet"]) == 3
     out = capsys.readouterr().out
     assert '"skipped": 7' in out and '"done": 0' in out
     with open_store(url) as st:

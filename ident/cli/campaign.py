@@ -43,6 +43,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also fit every transient on its own (costly)")
     p.add_argument("--max-transients", type=int, metavar="N",
                    help="fit at most N transients per recording")
+    p.add_argument("--fit-budget", type=float, default=None, metavar="S",
+                   help="wall seconds after which a recording's fit begins no further start "
+                        "or path (default 600; the solve under way finishes)")
     p.add_argument("--no-fit", action="store_true", help="skip the gap fit")
     p.add_argument("--no-diagnose", action="store_true", help="skip the wear diagnosis")
     p.add_argument("--model", metavar="MODEL",
@@ -67,15 +70,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..store import Settings, run_campaign  # heavy: imported when the command runs
+    from ..store.process import FIT_BUDGET_S
 
     mill = load_mill_arg(args)
     if args.samples < 10:
         raise IdentError(f"--samples must be at least 10. Got {args.samples}")
     if args.jobs < 1:
         raise IdentError(f"--jobs must be at least 1. Got {args.jobs}")
+    budget = FIT_BUDGET_S if args.fit_budget is None else args.fit_budget
+    if not budget > 0:
+        raise IdentError(f"--fit-budget must be positive. Got {args.fit_budget}")
     settings = Settings(family=args.family, fit=not args.no_fit,
                         per_transient=args.per_transient, max_transients=args.max_transients,
-                        diagnose=not args.no_diagnose, model=args.model)
+                        diagnose=not args.no_diagnose, model=args.model, fit_budget_s=budget)
     summary = run_campaign(args.dir, mill, args.store, workers=args.workers,
                            scheduler=args.scheduler, settings=settings,
                            progress=not args.quiet, retry_failed=args.retry_failed,

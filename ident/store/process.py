@@ -39,6 +39,10 @@ ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
 _VERSIONED = ("ident", "numpy", "scipy", "pandas", "casadi", "scikit-learn", "mcap", "sqlalchemy")
 
 
+#: Default wall budget of one recording's fit in a campaign, s (:class:`Settings`).
+FIT_BUDGET_S = 600.0
+
+
 @dataclass(frozen=True)
 class Settings:
     """How each recording of a campaign is processed (part of the idempotency key).
@@ -69,6 +73,19 @@ class Settings:
         Start the fit at these gaps (rad, ``(element, gap)`` pairs; the others at the
         mill file's): the campaign's refit from a neighbouring recording
         (:func:`ident.store.campaign.neighbour_starts`); empty = the mill file's gaps.
+    nuisance : bool
+        Fit the plant nuisances with the gaps (``fit_gaps(nuisance=...)``: channel
+        offsets, drag, the ramps' skew).  Off in campaigns for now, unlike ``ident
+        fit``: on the project's own recordings they cost 2-4 times the solve (the
+        demo's day-14 recording: 67 s against 19 s, the same gaps), and a campaign
+        study on plant recordings that would justify them has not run yet.
+    fit_budget_s : float
+        Wall seconds after which a recording's fit begins no further start or path
+        (``fit_gaps(time_budget_s=...)``; the solve under way finishes, each IPOPT
+        call being bounded itself), so that one recording whose fit keeps restarting
+        cannot hold a worker without end: it is stored with what the fit reached and
+        the fit's warning.  The default, 600 s, is 10-20 times a fit that passes
+        first time on the project's recordings.
     """
 
     family: str | None = None
@@ -79,11 +96,18 @@ class Settings:
     model: str | None = None
     taf_window_s: float = 1.0
     starts: tuple[tuple[str, float], ...] = ()
+    nuisance: bool = False
+    fit_budget_s: float = FIT_BUDGET_S
 
     def to_dict(self) -> dict[str, Any]:
-        """The settings as JSON-able values; ``starts`` only when given, so that the hash
-        of every first-pass setting is what it was before refits existed."""
+        """The settings as JSON-able values; ``starts`` only when given, ``nuisance``
+        only when on and ``fit_budget_s`` only when not the default, so that the hash of
+        every setting that existed before them is what it was."""
         d = asdict(self)
+        if not d["nuisance"]:
+            del d["nuisance"]
+        if d["fit_budget_s"] == FIT_BUDGET_S:
+            del d["fit_budget_s"]
         if not d["starts"]:
             del d["starts"]
         else:
@@ -339,7 +363,10 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
             from ..fit import fit_gaps, windows_from_recording
 
             use = segs if settings.max_transients is None else segs[:settings.max_transients]
-            kw = {} if settings.family is None else {"family": settings.family}
+            kw: dict[str, Any] = {"nuisance": settings.nuisance,
+                                  "time_budget_s": settings.fit_budget_s}
+            if settings.family is not None:
+                kw["family"] = settings.family
             if settings.starts:
                 kw["starts"] = [dict(settings.starts)]
             from ..io.channels import require_channels
