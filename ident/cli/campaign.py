@@ -77,9 +77,7 @@ def run(args: argparse.Namespace) -> int:
         raise IdentError(f"--samples must be at least 10. Got {args.samples}")
     if args.jobs < 1:
         raise IdentError(f"--jobs must be at least 1. Got {args.jobs}")
-    budget = FIT_BUDGET_S if args.fit_budget is None else args.fit_budget
-    if not budget > 0:
-        raise IdentError(f"--fit-budget must be positive. Got {args.fit_budget}")
+    budget = FIT_BUDGET_S if args.fit_budget is None else args.fit_budget  # Settings checks it
     settings = Settings(family=args.family, fit=not args.no_fit,
                         per_transient=args.per_transient, max_transients=args.max_transients,
                         diagnose=not args.no_diagnose, model=args.model, fit_budget_s=budget)

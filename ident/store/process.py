@@ -99,6 +99,11 @@ class Settings:
     nuisance: bool = False
     fit_budget_s: float = FIT_BUDGET_S
 
+    def __post_init__(self) -> None:
+        if not self.fit_budget_s > 0:
+            raise IdentError(f"fit_budget_s (ident campaign --fit-budget) must be positive. "
+                             f"Got {self.fit_budget_s} s.")
+
     def to_dict(self) -> dict[str, Any]:
         """The settings as JSON-able values; ``starts`` only when given, ``nuisance``
         only when on and ``fit_budget_s`` only when not the default, so that the hash of
