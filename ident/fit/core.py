@@ -53,11 +53,21 @@ from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
 from .uncertainty import Z95, Covariance, channel_information, collocation_sensitivity, \
     covariance, model_error_se, noise_floor, shooting_sensitivity, window_influence
-from .verdict import agreement, band_check, confirmation_start, seen_channels, verdicts, \
+from .verdict import agree_tolerance, agreement, band_check, confirmation_start, seen_channels, verdicts, \
     window_residuals
 from .windows import FitWindow
 
 __all__ = ["fit_gaps", "assess", "Assessment"]
+
+#: Rounds of restarts (repair, confirmation, swaps of series pairs) from the best run
+#: so far while it fails the transient-band check; a round that lowers the cost by
+#: more than :data:`RESTART_GAIN` begins another from the new best.  On plantsim hsm-f1
+#: 3003 the designed start's first round ended at cost 0.754 (gaps 0.3-0.6 mrad off),
+#: a second swap from there at 0.461 (every gap within 0.16 mrad; truth start: 0.436).
+RESTART_ROUNDS = 3
+
+#: Relative lowering of the best cost that makes a restart round worth repeating.
+RESTART_GAIN = 0.01
 
 
 
@@ -136,19 +146,26 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         check (:mod:`ident.fit.verdict`), restart first from the linear
         baseline (every gap nearly closed, path ``"baseline"``) if the baseline
         fits at least as well as that best fit (otherwise the closed-gap
-        neighbourhood holds nothing better), then, while still failing, from the
-        best gaps with the gaps of each pair of elements in series
-        swapped (two elements meeting at a mass that nothing else touches,
-        e.g. a coupling and the mesh behind it): such pairs trade their gaps
-        in a local minimum, the residuals at the channel between them 30 times
-        the noise.  Each restart runs the held path (``solver.path``
-        ``"swap C12/C23"``); the lowest cost wins as before.  Before the swaps,
-        one continued restart from the best gaps each moved 50 % off
-        (:func:`ident.fit.verdict.confirmation_start`, path ``"confirm"``): where
-        it falls back to a gap, the verdict may accept that gap under a model
-        error (:mod:`ident.fit.verdict`, 3.), and a pair whose two gaps both fell
-        back is not swapped.  The restarts stop at the first that passes the
-        check: on the demo's day-14 recording (spindle 5.7 mrad) the fit took 48.8 s instead of 94.7 s.
+        neighbourhood holds nothing better).  Then, while still failing, rounds
+        of restarts from the best run so far (:data:`RESTART_ROUNDS`):
+
+        - ``"repair"``: the gaps that no window drives across (drive and back
+          flank) put back to the mill file's; a wrong basin often parks a gap
+          where the data cannot see it (continued path);
+        - ``"confirm"``: every gap moved 50 % off
+          (:func:`ident.fit.verdict.confirmation_start`); where it falls back
+          to a gap, the verdict may accept that gap under a model error
+          (:mod:`ident.fit.verdict`, 3.) (continued path);
+        - ``"swap C12/C23"``: the gaps of each pair of elements in series
+          swapped (two elements meeting at a mass that nothing else touches,
+          e.g. a coupling and the mesh behind it): such pairs trade their gaps
+          in a local minimum, the residuals at the channel between them 30
+          times the noise (held path).
+
+        A round that lowers the best cost by more than :data:`RESTART_GAIN`
+        begins another from the new best; the lowest cost wins as before.  The
+        restarts stop at the first that passes the check: on the demo's day-14
+        recording (spindle 5.7 mrad) the fit took 48.8 s instead of 94.7 s.
     nuisance : bool
         Fit the plant nuisances with the gaps (default): per-window channel
         offsets, drag torques spread over the shafts and the ramps' skew
@@ -296,37 +313,61 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
             build_s += info.build_seconds
             runs.append((len(start_vecs), sv, est, info, "baseline"))
-    if still_above():
-        # a start with every gap moved off the best run's (verdict.confirmation_start): a
-        # model error falls back to the same gaps, a local minimum ends elsewhere
-        best_sh = _best_run(runs)[2].shared
-        sv = best_sh.copy()
-        for eid, g in confirmation_start(_gap_dict(model, best_sh)).items():
-            j = model.shared_names.index(f"{eid}.gap")
-            sv[j] = float(np.clip(g, model.shared_lb[j], model.shared_ub[j]))
-        for j, v in fixed_vals.items():
-            sv[j] = v
+    def restart(sv: np.ndarray, k: int, tag: str, path: tuple) -> None:
+        nonlocal build_s
         done.append(sv)
         base = _start_from_baseline(problem, lin_est, sv, open_frac)
-        path, settle, widths, horizons = paths[0]
+        _, settle, widths, horizons = path
         est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
         build_s += info.build_seconds
-        runs.append((len(start_vecs) + 1, sv, est, info, "confirm"))
-    if still_above():
-        agreed = _agreed(model, runs)
-        for k, (sv, pair) in enumerate(_swapped_starts(model, runs), start=len(start_vecs) + 2):
-            if not still_above():  # the last restart passed the check (or the budget ran out)
-                break
-            if all(agreed.get(e, False) for e in pair.split("/")):
-                continue  # a start moved off both gaps fell back to them: no swap to undo
-            if any(np.allclose(sv, d, rtol=1e-6, atol=1e-9) for d in done):
-                continue
-            done.append(sv)
-            base = _start_from_baseline(problem, lin_est, sv, open_frac)
-            path, settle, widths, horizons = held_path
-            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
-            build_s += info.build_seconds
-            runs.append((k, sv, est, info, f"swap {pair}"))
+        runs.append((k, sv, est, info, tag))
+
+    def tried(sv: np.ndarray) -> bool:
+        return any(np.allclose(sv, d, rtol=1e-6, atol=1e-9) for d in done)
+
+    k_next = len(start_vecs) + 1
+    for _round in range(RESTART_ROUNDS):
+        if not still_above():
+            break
+        best_cost = _best_run(runs)[3].cost
+        # elements the windows do not drive across their gap: a wrong basin parks a gap
+        # where the data cannot see it (3 of 4 wrong minima on plantsim hsm-f1 3000-3005:
+        # 11-15 mrad, truth 0.9-5); restart with those gaps at the mill file's
+        best_est = _best_run(runs)[2]
+        sv = _repaired_start(model, best_est, final[0], min_start_gap,
+                             _gap_se_noise(method, problem, best_est))
+        if sv is not None:
+            for j, v in fixed_vals.items():
+                sv[j] = v
+            if not tried(sv):
+                restart(sv, k_next, "repair", paths[0])
+                k_next += 1
+        if still_above():
+            # a start with every gap moved off the best run's (verdict.confirmation_start): a
+            # model error falls back to the same gaps, a local minimum ends elsewhere
+            best_sh = _best_run(runs)[2].shared
+            sv = best_sh.copy()
+            for eid, g in confirmation_start(_gap_dict(model, best_sh)).items():
+                j = model.shared_names.index(f"{eid}.gap")
+                sv[j] = float(np.clip(g, model.shared_lb[j], model.shared_ub[j]))
+            for j, v in fixed_vals.items():
+                sv[j] = v
+            if not tried(sv):
+                restart(sv, k_next, "confirm", paths[0])
+                k_next += 1
+        if still_above():
+            # even where the confirmation fell back to both gaps of a pair: a swapped pair
+            # can hold its basin against a 50 % move (ident cold-s5 3000 from gaps up to
+            # 3x off: C12/C23 at 1.61/0.07 mrad, truth 1.09/0.72, confirmed at cost 4.39)
+            for sv, pair in _swapped_starts(model, runs):
+                if not still_above():  # the last restart passed the check (or the budget ran out)
+                    break
+                if tried(sv):
+                    continue
+                restart(sv, k_next, f"swap {pair}", held_path)
+                k_next += 1
+        if not _best_run(runs)[3].cost < best_cost * (1.0 - RESTART_GAIN):
+            break  # this round found nothing lower: another from the same best repeats it
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
     k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
@@ -511,6 +552,48 @@ def series_pairs(mill: Mill) -> tuple[tuple[str, str], ...]:
         at[e.to].append(e.id)
     return tuple((els[0], els[1]) for mid, els in at.items()
                  if len(els) == 2 and mid not in loaded and mid != mill.motor.mass)
+
+
+def _traversed(depth: float, width: float, se_noise: float) -> bool:
+    """Whether the windows drive an element across its gap: both flanks pressed
+    (:func:`_traversal_depth`) deeper than half the smoothing width and than the
+    95 % half-width the noise leaves on the gap."""
+    return bool(np.isfinite(depth) and depth > 0.5 * width and Z95 * se_noise < depth)
+
+
+def _gap_se_noise(method: Any, problem: Problem, est: Estimate) -> dict[str, float]:
+    """The noise's standard error of every g1 gap at ``est`` (empty where it fails)."""
+    model = problem.model
+    try:
+        sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
+                else shooting_sensitivity(method, problem, est))
+        cov = covariance(sens)
+    except Exception:  # noqa: BLE001 - the repair then judges on the depth alone
+        return {}
+    return {e.id: cov.se(("shared", model.shared_names.index(f"{e.id}.gap")))
+            for e in model.mill.elements if f"{e.id}.gap" in model.shared_names}
+
+
+def _repaired_start(model: FitModel, est: Estimate, width: float, min_gap: float,
+                    se_noise: Mapping[str, float] | None = None) -> np.ndarray | None:
+    """``est``'s shared vector with every gap that the windows do not drive across
+    (:func:`_traversed`; ``se_noise``: element id -> the gap's standard error from the
+    noise, 0 where missing) put back to the mill file's (at least ``min_gap``); None
+    when every gap is traversed or the fit is not g1."""
+    if model.family is not Family.G1 or est.trajectories is None:
+        return None
+    sv = est.shared.copy()
+    moved = False
+    for j, e in enumerate(model.mill.elements):
+        gap, contact = model.equivalent_gap(e.id, est.shared)
+        depth = _traversal_depth(model, est, j, gap, contact)
+        if np.isfinite(depth) and not _traversed(depth, width, (se_noise or {}).get(e.id, 0.0)):
+            k = model.shared_names.index(f"{e.id}.gap")
+            g = float(np.clip(max(e.gap, min_gap), model.shared_lb[k], model.shared_ub[k]))
+            if abs(g - sv[k]) > agree_tolerance(g):
+                sv[k] = g
+                moved = True
+    return sv if moved else None
 
 
 def _swapped_starts(model: FitModel, runs: list) -> list[tuple[np.ndarray, str]]:
@@ -801,8 +884,7 @@ def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covar
         # one window) is bounded from below only, whatever its Fisher information
         # (the data's precision decides, not the model error's allowance)
         depth = _traversal_depth(model, est, j, gap, contact)
-        traversed = bool(np.isfinite(depth) and depth > 0.5 * width
-                         and Z95 * se_noise < depth)
+        traversed = _traversed(depth, width, se_noise)
         identifiable = bool(cov is not None and np.isfinite(se) and traversed
                             and half <= max(0.25 * abs(gap), 5e-4))
         why = _why_not_identifiable(cov, fixed, se, traversed, half, gap)

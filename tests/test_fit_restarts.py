@@ -1,0 +1,83 @@
+"""The fit's restarts from a failing best run (ident.fit.core): which gaps a repair moves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ident.fit.core import _repaired_start, _shared_from_gaps
+from ident.fit.model import build_fit_model
+from ident.fit.problem import Estimate
+from ident.model.linear import angles_from_deflections
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _estimate(model, gaps: dict[str, float], swing: dict[str, tuple[float, float]]) -> Estimate:
+    """An estimate whose one window swings each element's deflection over ``swing`` (rad)."""
+    mill = model.mill
+    shared = _shared_from_gaps(model, gaps)
+    t = np.linspace(0.0, 1.0, 200)
+    lo = np.array([swing[e.id][0] for e in mill.elements])
+    hi = np.array([swing[e.id][1] for e in mill.elements])
+    delta = lo[None, :] + (hi - lo)[None, :] * 0.5 * (1.0 + np.sin(2 * np.pi * 3 * t))[:, None]
+    n = len(mill.masses)
+    X = np.zeros((t.size, model.nx))
+    for i, d in enumerate(delta):
+        X[i, :n] = angles_from_deflections(mill, d, model.motor_index)
+    return Estimate(shared=shared, window=np.zeros((1, model.n_window)), x0=X[:1].copy(),
+                    trajectories=(X,))
+
+
+def test_a_gap_no_window_traverses_goes_back_to_the_mill_files(mill):
+    model = build_fit_model(mill)
+    gaps = {e.id: 2e-3 for e in mill.elements}
+    gaps["C57"] = 15e-3  # parked where the data cannot see it
+    # every element pressed 1 mrad into both flanks (g1: contact at 0, back flank at -gap),
+    # C57 swinging inside its gap only
+    swing = {eid: (-g - 1e-3, 1e-3) for eid, g in gaps.items()}
+    swing["C57"] = (-5e-3, 1e-3)
+    est = _estimate(model, gaps, swing)
+    got = _repaired_start(model, est, 1e-4, 5e-4)
+    assert got is not None
+    for e in mill.elements:
+        k = model.shared_names.index(f"{e.id}.gap")
+        want = max(e.gap, 5e-4) if e.id == "C57" else gaps[e.id]
+        assert got[k] == pytest.approx(want, rel=1e-9), e.id
+    # everything else is the best run's
+    others = [i for i, nm in enumerate(model.shared_names) if nm != "C57.gap"]
+    np.testing.assert_array_equal(got[others], est.shared[others])
+
+
+def test_nothing_to_repair_when_every_gap_is_traversed(mill):
+    model = build_fit_model(mill)
+    gaps = {e.id: 2e-3 for e in mill.elements}
+    est = _estimate(model, gaps, {eid: (-g - 1e-3, 1e-3) for eid, g in gaps.items()})
+    assert _repaired_start(model, est, 1e-4, 5e-4) is None
+    # a traversal shallower than half the smoothing width does not count
+    shallow = {eid: (-g - 1e-3, 1e-3) for eid, g in gaps.items()}
+    shallow["C12"] = (-2e-3 - 4e-5, 4e-5)
+    assert _repaired_start(model, _estimate(model, gaps, shallow), 1e-4, 5e-4) is not None
+
+
+def test_no_repair_without_trajectories(mill):
+    model = build_fit_model(mill)
+    shared = _shared_from_gaps(model, {e.id: 2e-3 for e in mill.elements})
+    est = Estimate(shared=shared, window=np.zeros((1, model.n_window)),
+                   x0=np.zeros((1, model.nx)))
+    assert _repaired_start(model, est, 1e-4, 5e-4) is None
+
+
+def test_a_traversal_the_noise_could_explain_counts_as_none(mill):
+    """Plantsim hsm-f1 3002's wrong basin: C57 at 14.7 mrad pressed 1.37 mrad into both
+    flanks, with a standard error of 1.5 mrad from the noise: not driven across."""
+    model = build_fit_model(mill)
+    gaps = {e.id: 2e-3 for e in mill.elements}
+    gaps["C57"] = 14.7e-3
+    swing = {eid: (-g - 1.37e-3, 1.37e-3) for eid, g in gaps.items()}
+    est = _estimate(model, gaps, swing)
+    assert _repaired_start(model, est, 1e-4, 5e-4, {"C57": 1e-4}) is None
+    got = _repaired_start(model, est, 1e-4, 5e-4, {"C57": 1.5e-3})
+    assert got is not None
+    k = model.shared_names.index("C57.gap")
+    assert got[k] == pytest.approx(mill.element("C57").gap)
