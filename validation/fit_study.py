@@ -215,7 +215,7 @@ def run_one(gen: str, mill_name: str, seed: int, directory: str) -> dict:
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """The figures per (generator, mill) and overall.
+    """The figures per (generator, mill), per generator and overall.
 
     A fit is *at the global optimum* when its cost is within 0.1 % of the lowest
     cost any of the recording's three fits reached (the truth's included), and
@@ -229,6 +229,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["gen"], r["mill"]), []).append(r)
+        groups.setdefault((r["gen"], "all"), []).append(r)  # per generator, both mills
         groups.setdefault(("all", "all"), []).append(r)
     out = []
     for (gen, mill), rs in sorted(groups.items()):

@@ -300,19 +300,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
                 and any(r[3].success for r in runs) and _above_noise_floor(method, problem, runs))
 
     done = [r[1] for r in runs]
-    if still_above() and _baseline_competes(lin_info, runs):
-        # the linear baseline's neighbourhood: every gap nearly closed (a mill whose gaps are
-        # all tight reached 5x the cost from its designed gaps, at the baseline's: the noise)
-        sv = _shared_from_gaps(model, {e.id: 1e-5 for e in mill.elements})
-        for j in lin_model.drag_index:
-            sv[model.shared_names.index(lin_model.shared_names[j])] = lin_est.shared[j]
-        if not any(np.allclose(sv, d, rtol=1e-6, atol=1e-9) for d in done):
-            done.append(sv)
-            base = _start_from_baseline(problem, lin_est, sv, open_frac)
-            path, settle, widths, horizons = paths[0]
-            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
-            build_s += info.build_seconds
-            runs.append((len(start_vecs), sv, est, info, "baseline"))
+
     def restart(sv: np.ndarray, k: int, tag: str, path: tuple) -> None:
         nonlocal build_s
         done.append(sv)
@@ -325,6 +313,14 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     def tried(sv: np.ndarray) -> bool:
         return any(np.allclose(sv, d, rtol=1e-6, atol=1e-9) for d in done)
 
+    if still_above() and _baseline_competes(lin_info, runs):
+        # the linear baseline's neighbourhood: every gap nearly closed (a mill whose gaps are
+        # all tight reached 5x the cost from its designed gaps, at the baseline's: the noise)
+        sv = _shared_from_gaps(model, {e.id: 1e-5 for e in mill.elements})
+        for j in lin_model.drag_index:
+            sv[model.shared_names.index(lin_model.shared_names[j])] = lin_est.shared[j]
+        if not tried(sv):
+            restart(sv, len(start_vecs), "baseline", paths[0])
     k_next = len(start_vecs) + 1
     for _round in range(RESTART_ROUNDS):
         if not still_above():
