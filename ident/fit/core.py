@@ -18,12 +18,16 @@ Steps (``ident fit``, cli.md):
    swings across the gaps are smooth in the gaps, the later rattle is not),
    then on the smoothing width, warm-started throughout; keep the lowest cost
    among converged starts and report which won.
-5. **Assess** the winner (:func:`assess`): sandwich covariance with every
-   nuisance parameter free (:mod:`ident.fit.uncertainty`); a gap no window
-   traverses (drive flank and back flank in one window) or no torque sees is
-   flagged, never reported with a confident interval; residuals above the
-   sensor noise (:data:`~ident.fit.result.NOISE_RATIO_MAX`) mark a local
-   minimum and nothing is reported as identified.
+5. **Restart** while the best run fails the transient-band check
+   (:mod:`ident.fit.verdict`): from the linear baseline, then in rounds from
+   the best run so far -- gaps the windows do not traverse put back to the
+   mill file's, every gap moved 50 % off, series pairs swapped (``restarts``).
+6. **Assess** the winner (:func:`assess`): sandwich covariance with every
+   nuisance parameter free (:mod:`ident.fit.uncertainty`), widened by the
+   model error; a gap no window traverses (drive flank and back flank in one
+   window) or no torque sees is flagged, never reported with a confident
+   interval; each element's verdict (``identified`` and its one-line reason)
+   judges the residual in the transient band (:mod:`ident.fit.verdict`).
 
 Cost (2-core box, ``benchmarks/bench_fit.py``): a recording's four 0.3 s
 windows (two bites, two releases) take 45-175 s CPU, most of it in the
