@@ -326,6 +326,16 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if not tried(sv):
             restart(sv, len(start_vecs), "baseline", paths[0])
     k_next = len(start_vecs) + 1
+
+    def attempt(sv: np.ndarray, tag: str, path: tuple) -> None:
+        """A restart from ``sv`` (the fixed parameters put back), unless already tried."""
+        nonlocal k_next
+        for j, v in fixed_vals.items():
+            sv[j] = v
+        if not tried(sv):
+            restart(sv, k_next, tag, path)
+            k_next += 1
+
     for _round in range(RESTART_ROUNDS):
         if not still_above():
             break
@@ -337,11 +347,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         sv = _repaired_start(model, best_est, final[0], min_start_gap,
                              _gap_se_noise(method, problem, best_est))
         if sv is not None:
-            for j, v in fixed_vals.items():
-                sv[j] = v
-            if not tried(sv):
-                restart(sv, k_next, "repair", paths[0])
-                k_next += 1
+            attempt(sv, "repair", paths[0])
         if still_above():
             # a start with every gap moved off the best run's (verdict.confirmation_start): a
             # model error falls back to the same gaps, a local minimum ends elsewhere
@@ -350,11 +356,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             for eid, g in confirmation_start(_gap_dict(model, best_sh)).items():
                 j = model.shared_names.index(f"{eid}.gap")
                 sv[j] = float(np.clip(g, model.shared_lb[j], model.shared_ub[j]))
-            for j, v in fixed_vals.items():
-                sv[j] = v
-            if not tried(sv):
-                restart(sv, k_next, "confirm", paths[0])
-                k_next += 1
+            attempt(sv, "confirm", paths[0])
         if still_above():
             # even where the confirmation fell back to both gaps of a pair: a swapped pair
             # can hold its basin against a 50 % move (ident cold-s5 3000 from gaps up to
@@ -362,10 +364,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             for sv, pair in _swapped_starts(model, runs):
                 if not still_above():  # the last restart passed the check (or the budget ran out)
                     break
-                if tried(sv):
-                    continue
-                restart(sv, k_next, f"swap {pair}", held_path)
-                k_next += 1
+                attempt(sv, f"swap {pair}", held_path)
         if not _best_run(runs)[3].cost < best_cost * (1.0 - RESTART_GAIN):
             break  # this round found nothing lower: another from the same best repeats it
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
