@@ -228,7 +228,7 @@ def test_cli_diagnose_with_a_model(mill, mill_path, tiny_model, recording, tmp_p
     model = save_model(tiny_model, tmp_path / "m.joblib")
     out = tmp_path / "d.json"
     assert main(["diagnose", str(recording), "--mill", str(mill_path), "--model", str(model),
-                 "--out", str(out), "--quiet"]) == 0
+                 "--no-fit", "--out", str(out), "--quiet"]) == 0
     d = json.loads(out.read_text())
     assert set(d["elements"]) == set(mill.element_ids)
     assert set(d["bearings"]) == {"B23", "B45"}
@@ -248,7 +248,7 @@ def test_cli_diagnose_refuses_a_model_of_another_mill(mill, tiny_model, recordin
     other_path.write_text(text)
     model = save_model(tiny_model, tmp_path / "m.joblib")
     code = main(["diagnose", str(recording), "--mill", str(other_path), "--model", str(model),
-                 "--quiet"])
+                 "--no-fit", "--quiet"])
     assert code == 2
     err = capsys.readouterr().err
     assert "was trained for another mill description" in err and "retrain" in err
@@ -268,12 +268,12 @@ def test_cli_train_then_diagnose_trains_and_caches(mill_path, recording, tmp_pat
 
     monkeypatch.setenv("IDENT_CACHE", str(tmp_path / "cache"))
     assert main(["diagnose", str(recording), "--mill", str(mill_path), "--samples", "10",
-                 "--jobs", "1", "--out", str(tmp_path / "a.json")]) == 0
+                 "--jobs", "1", "--no-fit", "--out", str(tmp_path / "a.json")]) == 0
     err = capsys.readouterr().err
     assert "training one on 10 simulated recordings" in err
     cached = list((tmp_path / "cache" / "models").glob("*.joblib"))
     assert len(cached) == 1
-    assert main(["diagnose", str(recording), "--mill", str(mill_path), "--out",
+    assert main(["diagnose", str(recording), "--mill", str(mill_path), "--no-fit", "--out",
                  str(tmp_path / "b.json")]) == 0
     assert "training" not in capsys.readouterr().err
     a = json.loads((tmp_path / "a.json").read_text())

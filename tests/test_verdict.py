@@ -169,20 +169,30 @@ def test_read_fit_refuses_what_is_no_fit_of_this_mill(mill, tmp_path):
     assert read_fit(tmp_path / "ok.json", mill)["elements"]["C46"]["identified"]
 
 
-@pytest.mark.slow
-def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, tmp_path):
-    """A tiny model (12 simulated recordings) decides nothing reliably; the fit's gap does."""
-    import json
-
+@pytest.fixture(scope="module")
+def worn_case(mill, mill_path, tmp_path_factory):
+    """A 2-bar recording with C46 critical (10 mrad) and a tiny model (12 simulated
+    recordings) that decides nothing reliably."""
     from ident.cli import main
     from ident.diagnose import save_model, simulate_library, train_model
 
-    rec = tmp_path / "worn.mcap"
+    d = tmp_path_factory.mktemp("worn")
+    rec = d / "worn.mcap"
     assert main(["simulate", "--mill", str(mill_path), "--out", str(rec), "--bars", "2",
                  "--seed", "4", "--set", "C46.gap=0.010", "--set", "C46.gap_open=0.010",
                  "--quiet"]) == 0
     lib = simulate_library(mill, n=12, random_state=11, bearings=True)
-    model = save_model(train_model(lib, mill, random_state=0, max_iter=30), tmp_path / "m.joblib")
+    return rec, save_model(train_model(lib, mill, random_state=0, max_iter=30), d / "m.joblib")
+
+
+@pytest.mark.slow
+def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, worn_case, tmp_path):
+    """The tiny model decides nothing reliably; the fit's gap does."""
+    import json
+
+    from ident.cli import main
+
+    rec, model = worn_case
     fit = tmp_path / "fit.json"
     fit.write_text(json.dumps(_fit(mill, C46=(0.0099, 0.0095, 0.0103))))
     out = tmp_path / "d.json"
@@ -196,3 +206,65 @@ def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, tmp_path):
     assert set(d["bearings"]) == {"B23", "B45"}
     assert all(v["source"] == "diagnosis" for v in d["bearings"].values())
     assert len(d["features"]["frequencies_hz"]) == 6 and d["transients"]["bites"] == 2
+    assert d["fit"] == {"source": "file", "path": str(fit), "identified": ["C46"]}
+
+
+class _FakeFit:
+    def __init__(self, doc: dict) -> None:
+        self.doc = doc
+
+    def to_dict(self) -> dict:
+        return self.doc
+
+
+@pytest.mark.slow
+def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, monkeypatch,
+                                          capsys):
+    """Without --fit, diagnose fits the recording's windows (its budget passed on) and the
+    identified gap decides; a fit that cannot run is one warning and the model decides;
+    --no-fit runs no fit."""
+    import json
+
+    import ident.fit
+    from ident.cli import main
+    from ident.errors import FitError
+
+    rec, model = worn_case
+    calls = []
+
+    def fake_fit(mill_, windows, **kw):
+        calls.append((len(windows), kw["time_budget_s"]))
+        doc = _fit(mill, C46=(0.0099, 0.0095, 0.0103))
+        return _FakeFit(dict(doc, solver={"seconds": 12.5}))
+
+    monkeypatch.setattr(ident.fit, "fit_gaps", fake_fit)
+    out = tmp_path / "d.json"
+    base = ["diagnose", str(rec), "--mill", str(mill_path), "--model", str(model),
+            "--out", str(out)]
+    assert main(base + ["--fit-budget", "77"]) == 0
+    assert calls == [(4, 77.0)]  # 2 bars: 2 bites and 2 releases
+    assert "fitting the gaps (up to 77 s" in capsys.readouterr().err
+    d = json.loads(out.read_text())
+    assert d["fit"] == {"source": "run", "seconds": 12.5, "identified": ["C46"]}
+    assert d["elements"]["C46"]["source"] == "fit" and d["elements"]["C46"]["state"] == "critical"
+
+    def failing_fit(mill_, windows, **kw):
+        raise FitError("no start converged")
+
+    monkeypatch.setattr(ident.fit, "fit_gaps", failing_fit)
+    assert main(base) == 0
+    assert "warning: the fit did not run (no start converged)" in capsys.readouterr().err
+    d = json.loads(out.read_text())
+    assert d["fit"] == {"source": None}
+    assert {v["source"] for v in d["elements"].values()} == {"diagnosis"}
+    assert any("the fit did not run (no start converged)" in w for w in d["warnings"])
+
+    calls.clear()
+    monkeypatch.setattr(ident.fit, "fit_gaps", fake_fit)
+    assert main(base + ["--no-fit", "--quiet"]) == 0
+    assert calls == [] and json.loads(out.read_text())["fit"] == {"source": None}
+    assert main(base + ["--fit-budget", "0"]) == 2
+    assert "--fit-budget must be positive" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # argparse: one or the other
+        main(base + ["--no-fit", "--fit", "x.json"])
+    assert exc.value.code == 2

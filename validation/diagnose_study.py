@@ -10,7 +10,10 @@
 2. **diagnose**: ``--per-mill`` recordings of the independent plant simulator
    (:mod:`validation.plantsim`, not ident's model), each diagnosed by the
    ``ident diagnose`` command itself (in this process, :func:`ident.cli.main`),
-   and its states scored against the truth's;
+   and its states scored against the truth's.  With ``--fit`` diagnose runs the
+   recording's fit as it does by default, and every gap the fit identified
+   decides that element's state; without it (``--no-fit``) the trained model
+   decides them all;
 3. **discrepancy** (``--discrepancy``): ``ident discrepancy`` on two recordings
    per mill with the designed gaps (4 bars, seed ``first_seed + 999``): a control
    -- nothing the mill file lacks beyond what an independent plant always has
@@ -249,6 +252,8 @@ def score(cases: list[dict[str, Any]], mill) -> dict[str, Any]:
         "faulty_recall": frac(lambda t: t != "good", lambda t, d: d != "good"),
         "false_alarm": frac(lambda t: t == "good", lambda t, d: d != "good"),
         "bearing_accuracy": (sum(t == d for t, d in bpairs), len(bpairs)),
+        "from_fit": (sum(v.get("source") == "fit" for c in cases if c.get("diagnosis")
+                         for v in c["diagnosis"]["elements"].values()), len(pairs)),
     }
 
 
@@ -266,6 +271,7 @@ def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
             ("worn+critical said not good", lambda f: _fmt(f["faulty_recall"])),
             ("good said worn/critical", lambda f: _fmt(f["false_alarm"])),
             ("bearing state accuracy", lambda f: _fmt(f["bearing_accuracy"])),
+            ("element states from the fit", lambda f: _fmt(f["from_fit"])),
             ("model trained (s)", lambda f: f"{f['train_s']:.0f}"),
             ("discrepancy, control (null)", lambda f: f.get("discrepancy control", "not run")),
             ("discrepancy, hidden softening", lambda f: next(
@@ -284,7 +290,7 @@ def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
 
 def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, directory: Path,
                samples: int, jobs: int, discrepancy: bool, drag_fraction: float = 0.0,
-               log=print) -> tuple[dict, list]:
+               fit: bool = False, log=print) -> tuple[dict, list]:
     import ident
 
     mill_path = MILLS[name]
@@ -295,8 +301,11 @@ def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, direct
     cases = []
     for k in range(per_mill):
         path, case = make_case(mill, first_seed + k, directory, n_bars=n_bars)
+        t0 = time.perf_counter()
         code, data, err = run_cli(["diagnose", str(path), "--mill", str(mill_path),
-                                   "--model", str(model_path), "--quiet"])
+                                   "--model", str(model_path), "--quiet"]
+                                  + ([] if fit else ["--no-fit"]))
+        case["seconds"] = time.perf_counter() - t0
         case["exit"] = code
         case["diagnosis"] = data if code == 0 else None
         if code != 0:
@@ -346,6 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drag-fraction", type=float, default=0.0, metavar="F",
                     help="train on a library with an idle drag in this fraction of its "
                          "samples (default 0: the model ident train makes)")
+    ap.add_argument("--fit", action="store_true",
+                    help="diagnose as 'ident diagnose' does by default: run the fit and take "
+                         "the state of every gap it identified from that gap (minutes per "
+                         "recording); without it, --no-fit: the trained model alone")
     ap.add_argument("--json", metavar="FILE", help="one line per recording")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings here")
     args = ap.parse_args(argv)
@@ -361,7 +374,8 @@ def main(argv: list[str] | None = None) -> int:
             fig, cases = study_mill(name, per_mill=args.per_mill, first_seed=args.first_seed,
                                     n_bars=args.bars, directory=d, samples=args.samples,
                                     jobs=args.jobs, discrepancy=args.discrepancy,
-                                    drag_fraction=args.drag_fraction, log=log)
+                                    drag_fraction=args.drag_fraction, fit=args.fit,
+                                    log=log)
             figures[name] = fig
             rows += [dict(c, mill=name) for c in cases]
     if args.json:

@@ -1,25 +1,31 @@
-"""``ident diagnose REC --mill M [--model MODEL] [--out F] [--quiet]``.
+"""``ident diagnose REC --mill M [--model MODEL] [--fit FIT.json | --no-fit] [--out F] [--quiet]``.
 
 Reads the recording, finds its load-step transients (``ident.segment``),
 extracts the natural-frequency amplitudes and phases against the linear
 baseline and the other transient features (``ident.features``) and applies
-the mill's trained model (``ident.diagnose``); with ``--fit FIT.json`` an element
-whose gap that fit identified takes its state from the gap
-(:mod:`ident.diagnose.verdict`, as the campaign does).  Without ``--model`` it uses the
-cached model of that mill file (``$IDENT_CACHE/models/<sha256>.joblib``),
-training it on first use.
+the mill's trained model (``ident.diagnose``).  An element whose gap the
+recording's fit identified takes its state from that gap, the most accurate
+evidence (:mod:`ident.diagnose.verdict`, as the campaign does).  The fit is the
+one given by ``--fit FIT.json`` (``ident fit --out``); without it, diagnose runs
+the fit itself as ``ident fit`` would (bounded by ``--fit-budget``, default 600 s);
+``--no-fit`` leaves the states to the trained model (seconds instead of minutes).
+A fit that cannot run (a torque channel the fit needs is missing, no usable
+window) is one warning, and the model decides.  Without ``--model`` it uses the
+cached model of that mill (``$IDENT_CACHE/models/<hash>.joblib``, keyed by the
+parsed mill description), training it on first use.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
 from ..diagnose import (DiagnosticModel, diagnose_features, diagnosis_json, load_model,
                         model_cache_path)
-from ..errors import IdentError, ModelArtifactError
+from ..errors import ConvergenceWarning, IdentError, ModelArtifactError
 from ..features import feature_summary, recording_features, transient_features
 from .common import add_common, load_mill_arg, require_channels, write_json
 from .train import DEFAULT_SAMPLES, train_and_save
@@ -36,13 +42,63 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("recording", metavar="REC", help="recording (.mcap or .csv)")
     add_common(p)
     p.add_argument("--model", metavar="MODEL", help="trained model artefact (ident train)")
-    p.add_argument("--fit", metavar="FIT.json",
-                   help="the recording's fit (ident fit --out): an element whose gap it "
-                        "identified takes its state from that gap (source 'fit')")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--fit", metavar="FIT.json",
+                     help="the recording's fit (ident fit --out): an element whose gap it "
+                          "identified takes its state from that gap (source 'fit'); "
+                          "without it the fit is run here")
+    how.add_argument("--no-fit", action="store_true",
+                     help="do not run the fit: the trained model decides every state "
+                          "(seconds instead of minutes; less accurate for worn gaps)")
+    p.add_argument("--fit-budget", type=float, default=FIT_BUDGET_S, metavar="S",
+                   help=f"wall seconds after which the fit run here begins no further start "
+                        f"or path (default {FIT_BUDGET_S:g}, as the campaign's)")
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
                    help="library size when a model has to be trained first")
     p.add_argument("--jobs", type=int, default=2, metavar="N",
                    help="worker processes when a model has to be trained first")
+
+
+#: the fit's time budget when diagnose runs it (the campaign's default, store.Settings)
+FIT_BUDGET_S = 600.0
+
+
+def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float = FIT_BUDGET_S,
+            progress: bool = False) -> tuple[dict[str, Any] | None, str | None]:
+    """The recording's fit as ``ident fit`` runs it, for the verdicts.
+
+    Parameters
+    ----------
+    rec : Recording
+    mill : Mill
+    segments : sequence of Segment
+        The recording's load-step transients.
+    budget_s : float
+        The fit's time budget (``fit_gaps(time_budget_s=...)``).
+    progress : bool
+        Show the fit's progress bar.
+
+    Returns
+    -------
+    fit : dict or None
+        cli.md ``fit`` JSON (:meth:`ident.fit.FitResult.to_dict`), or None when the
+        fit could not run.
+    why : str or None
+        Why not, in one line (a missing torque channel, no usable window).
+    """
+    try:
+        from ..fit import fit_gaps, windows_from_recording
+    except ImportError as exc:  # the fit's optional dependencies (CasADi) are missing
+        return None, f"the fit stage is not installed ({exc})"
+    try:
+        require_channels(rec, mill, "fit")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)  # the verdicts say it
+            windows = windows_from_recording(rec, mill, segments)
+            result = fit_gaps(mill, windows, time_budget_s=budget_s, progress=progress)
+    except IdentError as exc:
+        return None, str(exc)
+    return result.to_dict(), None
 
 
 def _cached_model(args: argparse.Namespace, mill: Any) -> tuple[DiagnosticModel, str]:
@@ -92,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
     from ..io.readers import read_recording
     from ..segment import segment_transients
 
+    if not args.fit_budget > 0:
+        raise IdentError(f"--fit-budget must be positive. Got {args.fit_budget}.")
     mill = load_mill_arg(args)
     rec_path = Path(args.recording)
     fit = read_fit(args.fit, mill) if args.fit else None
@@ -113,9 +171,29 @@ def run(args: argparse.Namespace) -> int:
                          f"close to the recording's ends to analyse")
     fv = recording_features(tf)
     diag = diagnose_features(model, fv)
+    notes = [i.message for i in rec.issues]
+    fit_info: dict[str, Any] = {"source": "file", "path": str(args.fit)} if fit else \
+        {"source": None}
+    if fit is None and not args.no_fit:
+        if not args.quiet:
+            print(f"ident diagnose: fitting the gaps (up to {args.fit_budget:g} s; --no-fit "
+                  f"skips)", file=sys.stderr)
+        fit, why = run_fit(rec, mill, segments, budget_s=args.fit_budget,
+                           progress=not args.quiet)
+        if fit is None:
+            notes.append(f"the fit did not run ({why}); the trained model decides every "
+                         f"state")
+            if not args.quiet:
+                print(f"ident diagnose: warning: {notes[-1]}", file=sys.stderr)
+        else:
+            fit_info = {"source": "run", "seconds": fit["solver"]["seconds"]}
+    if fit is not None:
+        fit_info["identified"] = [k for k, v in fit["elements"].items()
+                                  if v.get("identified")]
     out = {"mill": mill.name, "recording": str(rec_path)}
     out.update(diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf, mill=mill),
-                              warnings=[i.message for i in rec.issues]))
+                              warnings=notes))
+    out["fit"] = fit_info
     out["uncertain"] = any(v["uncertain"] for v in (*out["elements"].values(),
                                                      *out["bearings"].values()))
     out["transients"] = {"bites": int((tf.table["kind"] == "bite").sum()),
