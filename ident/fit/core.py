@@ -142,8 +142,10 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         fit ended at 5.1 times the noise variance, the gaps held through the
         continuation at 0.99.  It costs a second solve per start (a 4-window
         recording of ``tests/test_fit.py``: 243 s -> 610 s), so ``"auto"``
-        (default) runs it only when the best continued fit stays above the
-        noise floor (``NOISE_RATIO_MAX`` times the noise variance); ``True``
+        (default) runs it only when the best continued fit leaves some channel
+        above the sensor noise in the transient band
+        (:meth:`~ident.fit.verdict.BandCheck.all_at_noise`), even where the
+        verdict would accept that residual as a small model error; ``True``
         always, ``False`` never.
     restarts : {"auto", "never"}
         g1 only: when the best converged fit so far fails the transient-band
@@ -291,7 +293,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if bar:
             bar.update(1)
     if auto and model.family is Family.G1 and not over_budget() and \
-            _above_noise_floor(method, problem, runs):
+            _above_noise_floor(method, problem, runs, strict=True):
         for k, (sv, base) in enumerate(zip(start_vecs, bases)):
             if over_budget():
                 break
@@ -672,10 +674,18 @@ def _residuals(method: Any, problem: Problem, est: Estimate) -> np.ndarray:
     return r
 
 
-def _above_noise_floor(method: Any, problem: Problem, runs: list) -> bool:
+def _above_noise_floor(method: Any, problem: Problem, runs: list, *,
+                       strict: bool = False) -> bool:
     """Whether the best converged run fails the transient-band check on some channel (above
     the noise and a model error above :data:`~ident.fit.verdict.EXCESS_MAX` of the
-    transient), or no run converged."""
+    transient), or no run converged.
+
+    ``strict``: whether some channel is above the noise in the transient band at all,
+    the model-error allowance not counted.  The held path runs then: the verdict may
+    accept a small model error, the search does not settle for one (plantsim cold-s5
+    6007 from the designed gaps: continued 3.748, C12/C23 at 2.84/0.14 mrad accepted
+    under the allowance, truth 2.46/0.79; the held path 2.486, every channel at the
+    noise and every gap right)."""
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     if not ok:
         return True
@@ -683,7 +693,7 @@ def _above_noise_floor(method: Any, problem: Problem, runs: list) -> bool:
     r = _residuals(method, problem, best[2])
     check = band_check(problem, window_residuals(r, problem.model.ny,
                                                  _window_lengths(method, problem, r)))
-    return not check.all_pass
+    return not (check.all_at_noise if strict else check.all_pass)
 
 
 def _best_run(runs: list) -> tuple:
