@@ -7,7 +7,8 @@ the mill's trained model (``ident.diagnose``).  An element whose gap the
 recording's fit identified takes its state from that gap, the most accurate
 evidence (:mod:`ident.diagnose.verdict`, as the campaign does).  The fit is the
 one given by ``--fit FIT.json`` (``ident fit --out``); without it, diagnose runs
-the fit itself as ``ident fit`` would (bounded by ``--fit-budget``, default 600 s);
+the fit itself as ``ident fit`` would (bounded by ``--fit-budget``, default the
+campaign's, ``store.process.FIT_BUDGET_S``);
 ``--no-fit`` leaves the states to the trained model (seconds instead of minutes).
 A fit that cannot run (a torque channel the fit needs is missing, no usable
 window) is one warning, and the model decides.  Without ``--model`` it uses the
@@ -50,20 +51,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     how.add_argument("--no-fit", action="store_true",
                      help="do not run the fit: the trained model decides every state "
                           "(seconds instead of minutes; less accurate for worn gaps)")
-    p.add_argument("--fit-budget", type=float, default=FIT_BUDGET_S, metavar="S",
-                   help=f"wall seconds after which the fit run here begins no further start "
-                        f"or path (default {FIT_BUDGET_S:g}, as the campaign's)")
+    p.add_argument("--fit-budget", type=float, default=None, metavar="S",
+                   help="wall seconds after which the fit run here begins no further start "
+                        "or path (default: the campaign's, 600)")
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
                    help="library size when a model has to be trained first")
     p.add_argument("--jobs", type=int, default=2, metavar="N",
                    help="worker processes when a model has to be trained first")
 
 
-#: the fit's time budget when diagnose runs it (the campaign's default, store.Settings)
-FIT_BUDGET_S = 600.0
-
-
-def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float = FIT_BUDGET_S,
+def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
             progress: bool = False) -> tuple[dict[str, Any] | None, str | None]:
     """The recording's fit as ``ident fit`` runs it, for the verdicts.
 
@@ -148,8 +145,13 @@ def run(args: argparse.Namespace) -> int:
     from ..io.readers import read_recording
     from ..segment import segment_transients
 
-    if not args.fit_budget > 0:
-        raise IdentError(f"--fit-budget must be positive. Got {args.fit_budget}.")
+    budget = args.fit_budget
+    if budget is None:
+        from ..store.process import FIT_BUDGET_S  # the campaign's (store.Settings)
+
+        budget = FIT_BUDGET_S
+    if not budget > 0:
+        raise IdentError(f"--fit-budget must be positive. Got {budget}.")
     mill = load_mill_arg(args)
     rec_path = Path(args.recording)
     fit = read_fit(args.fit, mill) if args.fit else None
@@ -176,9 +178,9 @@ def run(args: argparse.Namespace) -> int:
         {"source": None}
     if fit is None and not args.no_fit:
         if not args.quiet:
-            print(f"ident diagnose: fitting the gaps (up to {args.fit_budget:g} s; --no-fit "
+            print(f"ident diagnose: fitting the gaps (up to {budget:g} s; --no-fit "
                   f"skips)", file=sys.stderr)
-        fit, why = run_fit(rec, mill, segments, budget_s=args.fit_budget,
+        fit, why = run_fit(rec, mill, segments, budget_s=budget,
                            progress=not args.quiet)
         if fit is None:
             notes.append(f"the fit did not run ({why}); the trained model decides every "
