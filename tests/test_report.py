@@ -386,3 +386,35 @@ def test_identified_gaps_decide_over_the_models_verdicts(tmp_path, mill):
     a = {x.id: x for x in analyse_mill("hsm-f1", load_results(url), figures=False).assessments}
     assert a["C46"].status == "good" and a["C46"].classifier == "critical"
     assert a["C23"].status == "worn" and a["C23"].reason == "diagnosed worn"
+
+
+def test_an_uncertain_latest_verdict_does_not_override_the_trend(tmp_path, mill):
+    """A bearing's clearances give a trend below the worn limit; its latest verdict says
+    critical. Uncertain, that verdict is one noisy recording of the trend (status good);
+    confident, it decides (critical)."""
+    import sqlalchemy as sa
+
+    from ident.store import schema as S
+
+    for i in range(4):
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=i, seed=i)
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    d, r = S.diagnoses.c, S.recordings.c
+    bid = mill.bearings[0].id
+    with sa.create_engine(url).begin() as c:
+        last = c.execute(sa.select(r.id).order_by(r.t0_ns.desc()).limit(1)).scalar_one()
+        c.execute(S.diagnoses.update().where((d.target == bid) & (d.recording_pk == last))
+                  .values(state="critical", uncertain=True))
+
+    def assess():
+        s = analyse_mill("hsm-f1", load_results(url), figures=False)
+        return {x.id: x for x in s.assessments}[bid]
+
+    a = assess()
+    assert a.n >= 3 and a.now < a.worn
+    assert a.classifier == "critical" and a.status == "good"
+    with sa.create_engine(url).begin() as c:
+        c.execute(S.diagnoses.update().where(d.target == bid).values(uncertain=False))
+    a = assess()
+    assert a.status == "critical" and a.reason == "diagnosed critical"

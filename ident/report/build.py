@@ -24,6 +24,12 @@ recordings give a trend, otherwise the last value.
 
 Where fits identified an element's gap, the values are those gaps and the
 verdicts of the trained model do not change its status (they are shown).
+Where the values are the trained model's own (a bearing, or an element no fit
+identified) and they give a trend, the latest verdict counts only when it is
+confident (not ``uncertain``): an uncertain verdict is one noisy recording of the
+trend the status already reads (campaign study: a bearing at 1.26 mm by its
+trend, worn limit 1.0 and critical 1.8, was called critical from its last
+recording alone, regressed at 2.1 mm with probability 0.57).
 * ``good`` (green): none of these.  ``unknown`` (grey): no evidence at all (no
   identified fit and no verdict).
 
@@ -223,7 +229,8 @@ def _first_at_or_above(t: np.ndarray, y: np.ndarray, limit: float) -> float:
 
 def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: float,
             critical: float, classifier: str | None, horizon: float, *, scale: float = 1.0,
-            n_recordings: int = 0, quantity: str = "") -> tuple[Assessment, F.GapPanel]:
+            n_recordings: int = 0, quantity: str = "", classifier_uncertain: bool = False,
+            ) -> tuple[Assessment, F.GapPanel]:
     days, y, lo, hi = ev.t, ev.y, ev.lo, ev.hi
     sigma = (hi - lo) / (2 * _Z95)
     ok = np.isfinite(days) & np.isfinite(y)
@@ -243,7 +250,11 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
         t_last, now, now_lo, now_hi = math.nan, math.nan, math.nan, math.nan
     # identified gaps are the most accurate evidence: where fits identified the gap,
     # the trained model's verdicts are shown but do not decide the status
-    decisive = None if ev.source == "fit" and ok.any() else classifier
+    decisive = classifier
+    if ev.source == "fit" and ok.any():
+        decisive = None
+    elif trend is not None and classifier_uncertain:
+        decisive = None
     status, reason = _status(now, worn, critical, decisive, w_at, c_at,
                              t_last if math.isfinite(t_last) else 0.0, horizon)
     if status == "unknown" and ev.rejected_t.size:
@@ -272,11 +283,14 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
     return a, panel
 
 
-def _latest_state(diag: pd.DataFrame, kind: str, target: str) -> str | None:
+def _latest_state(diag: pd.DataFrame, kind: str, target: str) -> tuple[str | None, bool]:
+    """The latest stored verdict's state of a target and whether it was ``uncertain``."""
     d = diag[(diag["kind"] == kind) & (diag["target"] == target) & diag["state"].notna()]
     if d.empty:
-        return None
-    return str(d.sort_values(["t0_ns", "recording_pk"]).iloc[-1]["state"])
+        return None, False
+    last = d.sort_values(["t0_ns", "recording_pk"]).iloc[-1]
+    unc = last["uncertain"] if "uncertain" in last.index else None
+    return str(last["state"]), bool(unc) if unc is not None and not pd.isna(unc) else False
 
 
 def _col(d: pd.DataFrame, name: str) -> np.ndarray:
@@ -370,25 +384,26 @@ def analyse_mill(name: str, res: dict[str, pd.DataFrame], *, mill: Mill | None =
         for e in mill.elements:
             f, unit = (e.gap_mm(1.0), "mm") if e.radius else (1e3, "mrad")
             ev = _element_evidence(er, diag, e.id, t_ref, f)
-            cls = _latest_state(diag, "element", e.id)
+            cls, unc = _latest_state(diag, "element", e.id)
             if not ev.t.size and not ev.rejected_t.size and cls is None:
                 continue
             quantity = (f"gap at r = {e.radius:g} m" if e.radius else
                         "gap (motor shaft)")
             a, p = _assess("element", e.id, e.label, unit, ev, e.gap_worn * f,
                            e.gap_critical * f, cls, horizon_days, scale=f,
-                           n_recordings=len(done), quantity=quantity)
+                           n_recordings=len(done), quantity=quantity,
+                           classifier_uncertain=unc)
             assessments.append(a)
             panels.append(p)
         for b in mill.bearings:
             ev = _bearing_evidence(diag, b.id, t_ref)
-            cls = _latest_state(diag, "bearing", b.id)
+            cls, unc = _latest_state(diag, "bearing", b.id)
             if not ev.t.size and cls is None:
                 continue
             a, p = _assess("bearing", b.id, f"bearing of {b.mesh}", "mm", ev,
                            b.clearance_worn * 1e3, b.clearance_critical * 1e3, cls,
                            horizon_days, scale=1e3, n_recordings=len(done),
-                           quantity="radial clearance")
+                           quantity="radial clearance", classifier_uncertain=unc)
             assessments.append(a)
             bpanels.append(p)
     else:
