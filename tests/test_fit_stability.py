@@ -32,3 +32,12 @@ def test_a_solve_that_hits_its_time_bound_says_so(mill, case):
     assert "CpuTime" in res.solver.status, res.solver.status
     assert not any(el.identified for el in res.elements.values())
     assert all("did not converge" in el.reason for el in res.elements.values())
+
+
+def test_the_fits_budget_is_cpu_time_and_stops_further_starts(mill, case):
+    """A budget spent by the first solve: the fit stops there and says so, in CPU seconds
+    (the same restarts on a busy machine as on an idle one)."""
+    res = fit_gaps(mill, case.windows, method=Collocation(max_cpu_s=0.05), restarts="auto",
+                   direct=False, uncertainty=False, time_budget_s=1e-6)
+    assert len(res.solver.starts) == 1
+    assert any("time budget of 1e-06 CPU s ran out after 1 solve" in w for w in res.warnings)

@@ -44,7 +44,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-transients", type=int, metavar="N",
                    help="fit at most N transients per recording")
     p.add_argument("--fit-budget", type=float, default=None, metavar="S",
-                   help="wall seconds after which a recording's fit begins no further start "
+                   help="CPU seconds after which a recording's fit begins no further start "
                         "or path (default 600; the solve under way finishes)")
     p.add_argument("--no-fit", action="store_true", help="skip the gap fit")
     p.add_argument("--no-diagnose", action="store_true", help="skip the wear diagnosis")

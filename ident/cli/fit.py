@@ -86,7 +86,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "drag torques spread over the shafts and the load ramps' skew "
                         "(default; --no-nuisance leaves them out)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
-                   help="wall seconds after which no further start or path is begun "
+                   help="CPU seconds after which no further start or path is begun "
                         "(default 1800; each solver call is also bounded in iterations and "
                         "CPU time)")
     p.add_argument("--no-uncertainty", action="store_true",

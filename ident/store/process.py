@@ -80,7 +80,7 @@ class Settings:
         demo's day-14 recording: 67 s against 19 s, the same gaps), and a campaign
         study on plant recordings that would justify them has not run yet.
     fit_budget_s : float
-        Wall seconds after which a recording's fit begins no further start or path
+        CPU seconds after which a recording's fit begins no further start or path
         (``fit_gaps(time_budget_s=...)``; the solve under way finishes, each IPOPT
         call being bounded itself), so that one recording whose fit keeps restarting
         cannot hold a worker without end: it is stored with what the fit reached and
