@@ -413,7 +413,9 @@ def test_an_uncertain_latest_verdict_does_not_override_the_trend(tmp_path, mill)
 
     a = assess()
     assert a.n >= 3 and a.now < a.worn
-    assert a.classifier == "critical" and a.status == "good"
+    assert a.classifier == "critical" and a.status == "good" and a.classifier_uncertain
+    html = build_report(url, tmp_path / "r.html", now=_NOW).path.read_text()
+    assert "critical <span class=note>(uncertain)</span>" in html
     with sa.create_engine(url).begin() as c:
         c.execute(S.diagnoses.update().where(d.target == bid).values(uncertain=False))
     a = assess()

@@ -86,6 +86,8 @@ class Assessment:
         When the trend reaches each limit, in days since :attr:`MillSection.t_ref_ns`.
     classifier : str or None
         Latest state from the wear diagnosis.
+    classifier_uncertain : bool
+        That latest state was ``uncertain`` (then it does not override a trend).
     n : int
         Recordings behind the trend (identified fits, or verdicts without them).
     identifiable : bool
@@ -124,6 +126,7 @@ class Assessment:
     identifiable: bool = True
     scale: float = 1.0
     source: str = ""
+    classifier_uncertain: bool = False
     n_identified: int = 0
     n_rejected: int = 0
     n_recordings: int = 0
@@ -264,7 +267,8 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
                    now=now, now_lo=now_lo, now_hi=now_hi, worn=worn, critical=critical,
                    slope_per_30d=30.0 * trend.slope if trend is not None else math.nan,
                    p_increasing=trend.p_increasing if trend is not None else math.nan,
-                   worn_at=w_at, critical_at=c_at, classifier=classifier, n=int(ok.sum()),
+                   worn_at=w_at, critical_at=c_at, classifier=classifier,
+                   classifier_uncertain=classifier_uncertain, n=int(ok.sum()),
                    identifiable=ev.n_identified > 0 or kind == "bearing", scale=scale,
                    source=ev.source if ok.any() or classifier is not None else "",
                    n_identified=ev.n_identified, n_rejected=n_rej, n_recordings=n_recordings,
@@ -279,7 +283,9 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
     panel = F.GapPanel(title=title, unit=unit, t=days[ok], y=y[ok], lo=lo[ok], hi=hi[ok],
                        worn=worn, critical=critical, trend=trend, worn_at=w_at,
                        critical_at=c_at, status=status, horizon=horizon, note=note,
-                       rejected_t=ev.rejected_t, rejected_y=ev.rejected_y, quantity=quantity)
+                       rejected_t=ev.rejected_t, rejected_y=ev.rejected_y, quantity=quantity,
+                       evidence=("identified (95 % CI)" if ev.source == "fit" else
+                                 "diagnosed (95 % interval)"))
     return a, panel
 
 

@@ -64,6 +64,8 @@ class GapPanel:
         never part of the trend.
     quantity : str
         What ``y`` is, for the axis label (e.g. "gap at r = 0.5 m").
+    evidence : str
+        Legend of the points: what they are (an identified gap, a regressed value).
     """
 
     title: str
@@ -83,6 +85,7 @@ class GapPanel:
     rejected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rejected_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
     quantity: str = ""
+    evidence: str = "identified (95 % CI)"
 
 
 def _date_axis(ax, t0_ns: int) -> None:
@@ -143,7 +146,7 @@ def gap_trends(panels: Sequence[GapPanel], *, t0_ns: int, ncols: int = 2) -> str
         if has_err.any():
             ax.errorbar(p.t[has_err], p.y[has_err], yerr=err[:, has_err], fmt="o", ms=3.5,
                         color="#263238", ecolor="#90a4ae", elinewidth=1, capsize=0,
-                        label="identified (95 % CI)")
+                        label=p.evidence)
         if (~has_err).any():
             ax.plot(p.t[~has_err], p.y[~has_err], "o", ms=3.5, color="#263238",
                     label=None if has_err.any() else "value")
@@ -226,6 +229,10 @@ def mode_trends(series: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray]]
         a2.plot(d[order], ph[order], "o-", ms=3, lw=1, label=label)
     a1.axhline(1.0, color="k", lw=0.8, alpha=0.5)
     a2.axhline(0.0, color="k", lw=0.8, alpha=0.5)
+    # a ratio: on a log axis 2x and 1/2 look alike, and one recording at 300x (a mode the
+    # linear baseline barely excites) no longer flattens every other point to the axis
+    if any((np.asarray(amp, float) > 0).any() for _, _, amp, _ in series):
+        a1.set_yscale("log")
     a1.set_ylabel("amplitude ratio (measured / linear)")
     a2.set_ylabel("phase shift, deg")
     a1.set_title("amplitude at the natural frequencies", fontsize=9.5, loc="left")

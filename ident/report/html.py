@@ -155,7 +155,9 @@ def _glance(s: MillSection, status: dict | None = None) -> str:
             f"<td><b>{_e(life_words(part))}</b></td>"
             f"<td>{_forecast(a, a.worn_at, a.worn, s.t_ref_ns)}</td>"
             f"<td>{_forecast(a, a.critical_at, a.critical, s.t_ref_ns)}</td>"
-            f"<td>{_e(a.classifier or '–')}</td><td>{last}</td><td>{_evidence(a)}</td></tr>")
+            f"<td>{_e(a.classifier or '–')}"
+            f"{' <span class=note>(uncertain)</span>' if a.classifier_uncertain else ''}"
+            f"</td><td>{last}</td><td>{_evidence(a)}</td></tr>")
     return ("<table><tr><th>status</th><th>element / bearing</th><th>now (95 %)</th>"
             "<th>worn / critical limit</th><th>trend per 30 days</th><th>remaining life</th>"
             "<th>worn limit</th><th>critical limit</th><th>latest verdict</th>"
