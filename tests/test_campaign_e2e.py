@@ -20,11 +20,15 @@ from ident.store import (Settings, available_stages, load_results, make_sample_c
                          open_store, run_campaign)
 
 
-#: The campaign's fit budget, s.  From the designed gaps the day-14 recording's fit
+#: The campaign's fit budget, CPU s.  From the designed gaps the day-14 recording's fit
 #: (spindles at 7.5 and 5.5 mrad against 2) ends in a local minimum and, with the default
 #: 600 s, restarts for over 10 minutes before the refit from day 7 identifies it; this
 #: test is about the pipeline, so the first pass stops earlier.
 FIT_BUDGET = 120.0
+#: Transients fitted per recording (the first bar's bite and release; TAF and the
+#: diagnosis still see both bars): the pipeline, not the fit's accuracy, is under test
+#: here, and the fit of all four took 420 s of the suite's 25 minutes.
+MAX_TRANSIENTS = 2
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +52,8 @@ def stored(sample, mill, tmp_path_factory):
     url = f"sqlite:///{tmp_path_factory.mktemp('e2e_db')}/results.db"
     try:
         summary = run_campaign(sample.folder, mill, url, workers=2, progress=False,
-                               settings=Settings(fit_budget_s=FIT_BUDGET))
+                               settings=Settings(fit_budget_s=FIT_BUDGET,
+                                                 max_transients=MAX_TRANSIENTS))
         yield url, summary
     finally:
         cached.unlink(missing_ok=True)
@@ -137,7 +142,8 @@ def test_rerun_redoes_nothing_and_cli_exit_3(sample, stored, mill_path, capsys):
     with open_store(url) as st:
         before = st.count("recordings")
     assert main(["campaign", str(sample.folder), "--mill", str(mill_path), "--store", url,
-                 "--workers", "0", "--fit-budget", str(FIT_BUDGET), "--quiet"]) == 3
+                 "--workers", "0", "--fit-budget", str(FIT_BUDGET),
+                 "--max-transients", str(MAX_TRANSIENTS), "--quiet"]) == 3
     out = capsys.readouterr().out
     assert '"skipped": 7' in out and '"done": 0' in out
     with open_store(url) as st:

@@ -15,9 +15,10 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
-#: Per cell, s.  03_campaign's campaign cell fits 4 recordings and refits one from its
-#: neighbour: 240-290 s alone on a 2-core machine (day 21's first fit about 110 s),
-#: more beside another test; a cell that hangs still fails well inside the 900 s test timeout.
+#: Per cell, s.  03_campaign's campaign cell fits the first bar of 4 recordings and refits
+#: one from its neighbour: about 250 s of fits beside another test (day 21's first fit
+#: 143 s: it restarts, then its refit identifies it); a cell that hangs still fails well
+#: inside the 900 s test timeout.
 TIMEOUT_S = 600
 
 
