@@ -420,3 +420,17 @@ def test_an_uncertain_latest_verdict_does_not_override_the_trend(tmp_path, mill)
         c.execute(S.diagnoses.update().where(d.target == bid).values(uncertain=False))
     a = assess()
     assert a.status == "critical" and a.reason == "diagnosed critical"
+
+
+def test_a_noisy_value_above_a_limit_is_no_crossing():
+    """The trained model's values scatter: the crossing is the first whose interval is above
+    the limit (the first value above it only when no interval is)."""
+    from ident.report.build import _first_at_or_above
+
+    t = np.array([0.0, 3.0, 6.0, 9.0])
+    y = np.array([1.2, 0.8, 1.1, 1.4])
+    lo = y - 0.3
+    assert _first_at_or_above(t, y, 1.0) == 0.0  # identified gaps: the first value
+    assert _first_at_or_above(t, y, 1.0, lo) == 9.0
+    assert _first_at_or_above(t, y, 1.3, lo) == 9.0  # no interval above: the first value
+    assert math.isnan(_first_at_or_above(t, y, 2.0, lo))

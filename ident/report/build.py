@@ -225,7 +225,14 @@ class Evidence:
     rejected_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-def _first_at_or_above(t: np.ndarray, y: np.ndarray, limit: float) -> float:
+def _first_at_or_above(t: np.ndarray, y: np.ndarray, limit: float,
+                       lo: np.ndarray | None = None) -> float:
+    """Day of the first value at or above ``limit``; with ``lo``, of the first whose 95 %
+    interval is (the first value at or above it when none is)."""
+    if lo is not None:
+        sure = _first_at_or_above(t, lo, limit)
+        if math.isfinite(sure):
+            return sure
     hit = np.isfinite(t) & np.isfinite(y) & (y >= limit)
     return float(np.min(t[hit])) if hit.any() else math.nan
 
@@ -263,6 +270,9 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
     if status == "unknown" and ev.rejected_t.size:
         reason = f"no evidence: the {ev.rejected_t.size} fit(s) did not identify the gap"
     n_rej = int(ev.rejected_t.size)
+    # the trained model's values scatter (plant bearings: about 0.4 mm per recording), and
+    # one of them above a limit is no crossing: the first whose interval is above it is
+    noisy_lo = lo if ev.source != "fit" else None
     a = Assessment(kind=kind, id=id_, label=label, unit=unit, status=status, reason=reason,
                    now=now, now_lo=now_lo, now_hi=now_hi, worn=worn, critical=critical,
                    slope_per_30d=30.0 * trend.slope if trend is not None else math.nan,
@@ -272,8 +282,8 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
                    identifiable=ev.n_identified > 0 or kind == "bearing", scale=scale,
                    source=ev.source if ok.any() or classifier is not None else "",
                    n_identified=ev.n_identified, n_rejected=n_rej, n_recordings=n_recordings,
-                   t_last=t_last, worn_reached=_first_at_or_above(days, y, worn),
-                   critical_reached=_first_at_or_above(days, y, critical))
+                   t_last=t_last, worn_reached=_first_at_or_above(days, y, worn, noisy_lo),
+                   critical_reached=_first_at_or_above(days, y, critical, noisy_lo))
     title = f"{id_}" + (f" — {label}" if label else "") + f"  [{status.upper()}]"
     note = ""
     if kind == "element" and ev.source == "diagnosis" and ok.any():
