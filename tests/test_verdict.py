@@ -225,7 +225,7 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     --no-fit runs no fit."""
     import json
 
-    import ident.fit
+    import ident.fit.recording
     from ident.cli import main
     from ident.errors import FitError
 
@@ -237,7 +237,7 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
         doc = _fit(mill, C46=(0.0099, 0.0095, 0.0103))
         return _FakeFit(dict(doc, solver={"seconds": 12.5}))
 
-    monkeypatch.setattr(ident.fit, "fit_gaps", fake_fit)
+    monkeypatch.setattr(ident.fit.recording, "fit_gaps", fake_fit)
     out = tmp_path / "d.json"
     base = ["diagnose", str(rec), "--mill", str(mill_path), "--model", str(model),
             "--out", str(out)]
@@ -251,7 +251,7 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     def failing_fit(mill_, windows, **kw):
         raise FitError("no start converged")
 
-    monkeypatch.setattr(ident.fit, "fit_gaps", failing_fit)
+    monkeypatch.setattr(ident.fit.recording, "fit_gaps", failing_fit)
     assert main(base) == 0
     assert "warning: the fit did not run (no start converged)" in capsys.readouterr().err
     d = json.loads(out.read_text())
@@ -260,7 +260,7 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     assert any("the fit did not run (no start converged)" in w for w in d["warnings"])
 
     calls.clear()
-    monkeypatch.setattr(ident.fit, "fit_gaps", fake_fit)
+    monkeypatch.setattr(ident.fit.recording, "fit_gaps", fake_fit)
     assert main(base + ["--no-fit", "--quiet"]) == 0
     assert calls == [] and json.loads(out.read_text())["fit"] == {"source": None}
     assert main(base + ["--fit-budget", "0"]) == 2

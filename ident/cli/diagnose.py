@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 from typing import Any
 
 from ..diagnose import (DiagnosticModel, diagnose_features, diagnosis_json, load_model,
                         model_cache_path)
-from ..errors import ConvergenceWarning, IdentError, ModelArtifactError
+from ..errors import IdentError, ModelArtifactError
 from ..features import feature_summary, recording_features, transient_features
 from .common import add_common, load_mill_arg, require_channels, write_json
 from .train import DEFAULT_SAMPLES, train_and_save
@@ -84,15 +83,12 @@ def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
         Why not, in one line (a missing torque channel, no usable window).
     """
     try:
-        from ..fit import fit_gaps, windows_from_recording
+        from ..fit import fit_recording
     except ImportError as exc:  # the fit's optional dependencies (CasADi) are missing
         return None, f"the fit stage is not installed ({exc})"
     try:
-        require_channels(rec, mill, "fit")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)  # the verdicts say it
-            windows = windows_from_recording(rec, mill, segments)
-            result = fit_gaps(mill, windows, time_budget_s=budget_s, progress=progress)
+        result, _ = fit_recording(rec, mill, segments, time_budget_s=budget_s,
+                                  progress=progress)
     except IdentError as exc:
         return None, str(exc)
     return result.to_dict(), None

@@ -1,8 +1,8 @@
 """``ident fit REC --mill M [--family g1|g2|g3|g4] [--out F] [--quiet]``.
 
 Reads the recording, finds its load-step transients (``ident.segment``), cuts
-the fit windows around them (:func:`ident.fit.windows_from_recording`) and
-identifies every element's gap with :func:`ident.fit.fit_gaps` (CasADi direct
+the fit windows around them and identifies every element's gap
+(:func:`ident.fit.fit_recording`: :func:`ident.fit.fit_gaps`, CasADi direct
 collocation by default).  The JSON is cli.md's ``fit`` document --
 ``mill``, ``family``, ``elements`` (every element of the mill file: ``gap``,
 ``gap_ci95``, ``gap_open``, ``gap_mm`` where the element gives a radius,
@@ -30,15 +30,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConvergenceWarning, FitError
-from ..fit import Collocation, SingleShooting, fit_gaps, windows_from_recording
+from ..errors import FitError
+from ..fit import Collocation, SingleShooting, fit_recording
 from ..io.readers import read_recording
 from ..segment import segment_transients
-from .common import add_common, load_mill_arg, parse_sets, require_channels, write_json
+from .common import add_common, load_mill_arg, parse_sets, write_json
 
 #: --held choices -> fit_gaps(direct=...)
 HELD = {"auto": "auto", "always": True, "never": False}
@@ -166,22 +165,19 @@ def run(args: argparse.Namespace) -> int:
                 if k.endswith(".gap") and isinstance(v, float)}  # --set wins
         starts = [{**start_from_fit(args.start_from, mill.name, mill.element_ids), **over}]
     rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
-    require_channels(rec, mill, "fit")  # every torque channel: before the fit says less
     segments = segment_transients(rec, mill)
-    if not segments:
-        raise FitError(f"{args.recording}: no load-step transient found; a fit needs at "
-                       "least one bite or release")
-    windows = windows_from_recording(rec, mill, segments, **wkw)
-    if not args.quiet:
-        print(f"ident fit: {len(segments)} transients, fitting {len(windows)} windows of "
-              f"{windows[0].n_samples} samples ({method.name}, {args.family})", file=sys.stderr)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)  # reported below, once
-        result = fit_gaps(mill, windows, family=args.family, method=method,
-                          n_starts=args.starts, random_state=args.seed, starts=starts,
-                          uncertainty=not args.no_uncertainty, direct=HELD[args.held],
-                          time_budget_s=args.time_budget, nuisance=args.nuisance,
-                          progress=not args.quiet)
+
+    def say(windows: Any) -> None:
+        if not args.quiet:
+            print(f"ident fit: {len(segments)} transients, fitting {len(windows)} windows of "
+                  f"{windows[0].n_samples} samples ({method.name}, {args.family})",
+                  file=sys.stderr)
+
+    result, windows = fit_recording(  # ConvergenceWarning: reported below, once
+        rec, mill, segments, windows=wkw, on_windows=say, family=args.family, method=method,
+        n_starts=args.starts, random_state=args.seed, starts=starts,
+        uncertainty=not args.no_uncertainty, direct=HELD[args.held],
+        time_budget_s=args.time_budget, nuisance=args.nuisance, progress=not args.quiet)
     doc = result.to_dict()
     doc["recording"] = str(args.recording)
     doc["windows_used"] = [w.label for w in windows]

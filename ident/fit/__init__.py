@@ -2,7 +2,7 @@
 
 Data flow::
 
-    Recording + Segments ──► windows_from_recording ──► FitWindow(s)
+    Recording + Segments ──► windows_from_recording ──► FitWindow(s)   (fit_recording: both)
                                                              │
     Mill ──► FitModel (driveline, load ramp, layout) ────────┤
                                                              ▼
@@ -24,12 +24,13 @@ from .collocation import Collocation
 from .core import Assessment, assess, fit_gaps
 from .model import FitModel, build_fit_model
 from .problem import Estimate, Problem, make_problem
+from .recording import fit_recording
 from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
 from .synthetic import SyntheticCase, random_gaps, synthetic_case
 from .windows import FitWindow, reduced_torque_frame, windows_from_recording
 
-__all__ = ["fit_gaps", "assess", "Assessment", "FitResult", "ElementFit", "SolverReport",
+__all__ = ["fit_gaps", "fit_recording", "assess", "Assessment", "FitResult", "ElementFit", "SolverReport",
            "NOISE_RATIO_MAX", "Collocation", "SingleShooting", "FitWindow",
            "windows_from_recording", "reduced_torque_frame", "FitModel", "build_fit_model",
            "Problem", "Estimate", "make_problem", "SyntheticCase", "synthetic_case",

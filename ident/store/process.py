@@ -365,7 +365,7 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                                     f"diagnosis skipped"))
 
         if settings.fit and "fit" in stages:
-            from ..fit import fit_gaps, windows_from_recording
+            from ..fit import fit_recording
 
             use = segs if settings.max_transients is None else segs[:settings.max_transients]
             kw: dict[str, Any] = {"nuisance": settings.nuisance,
@@ -374,17 +374,13 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                 kw["family"] = settings.family
             if settings.starts:
                 kw["starts"] = [dict(settings.starts)]
-            from ..io.channels import require_channels
-
-            stage("fit", lambda: require_channels(rec, mill, "fit"))  # names file and channel
-            windows = stage("fit", lambda: windows_from_recording(rec, mill, use))
-            parts["fit"] = jsonable(stage("fit", lambda: fit_gaps(mill, windows, **kw)).to_dict())
+            fitted = stage("fit", lambda: fit_recording(rec, mill, use, **kw))[0]
+            parts["fit"] = jsonable(fitted.to_dict())
             if settings.per_transient:
                 per = []
                 for i, seg in enumerate(use):
-                    w = stage("fit", lambda seg=seg: windows_from_recording(rec, mill, (seg,)))
-                    d = jsonable(stage("fit", lambda w=w: fit_gaps(mill, w, **kw)).to_dict())
-                    per.append(dict(d, transient_idx=i))
+                    one = stage("fit", lambda seg=seg: fit_recording(rec, mill, (seg,), **kw))[0]
+                    per.append(dict(jsonable(one.to_dict()), transient_idx=i))
                 parts["transient_fits"] = tuple(per)
 
         if settings.diagnose and "diagnose" in stages and model_file is not None:
