@@ -2,7 +2,7 @@
 
 Data flow::
 
-    Recording + Segments ──► windows_from_recording ──► FitWindow(s)   (fit_recording: both)
+    Recording + Segments ──► windows_from_recording ──► FitWindow(s)
                                                              │
     Mill ──► FitModel (driveline, load ramp, layout) ────────┤
                                                              ▼
@@ -17,7 +17,8 @@ Modules: :mod:`.windows` (data), :mod:`.model` (parameter layout), :mod:`.proble
 (problem and estimates), :mod:`.simulator` (RK4 window simulation with sensitivities),
 :mod:`.collocation` and :mod:`.shooting` (strategies), :mod:`.uncertainty`,
 :mod:`.result`, :mod:`.core` (``fit_gaps``, ``assess``), :mod:`.synthetic` (simulated
-recordings of known gaps, for tests and benchmarks).
+recordings of known gaps, for tests and benchmarks).  :func:`fit_recording`
+(:mod:`.recording`) runs the two steps for one recording, as every command does.
 """
 
 from .collocation import Collocation
@@ -30,8 +31,8 @@ from .shooting import SingleShooting
 from .synthetic import SyntheticCase, random_gaps, synthetic_case
 from .windows import FitWindow, reduced_torque_frame, windows_from_recording
 
-__all__ = ["fit_gaps", "fit_recording", "assess", "Assessment", "FitResult", "ElementFit", "SolverReport",
-           "NOISE_RATIO_MAX", "Collocation", "SingleShooting", "FitWindow",
+__all__ = ["fit_gaps", "fit_recording", "assess", "Assessment", "FitResult", "ElementFit",
+           "SolverReport", "NOISE_RATIO_MAX", "Collocation", "SingleShooting", "FitWindow",
            "windows_from_recording", "reduced_torque_frame", "FitModel", "build_fit_model",
            "Problem", "Estimate", "make_problem", "SyntheticCase", "synthetic_case",
            "random_gaps"]

@@ -260,11 +260,9 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
         t_last, now, now_lo, now_hi = math.nan, math.nan, math.nan, math.nan
     # identified gaps are the most accurate evidence: where fits identified the gap,
     # the trained model's verdicts are shown but do not decide the status
-    decisive = classifier
-    if ev.source == "fit" and ok.any():
-        decisive = None
-    elif trend is not None and classifier_uncertain:
-        decisive = None
+    fitted = ev.source == "fit"
+    decisive = None if (fitted and ok.any()) or (trend is not None and classifier_uncertain) \
+        else classifier
     status, reason = _status(now, worn, critical, decisive, w_at, c_at,
                              t_last if math.isfinite(t_last) else 0.0, horizon)
     if status == "unknown" and ev.rejected_t.size:
@@ -272,7 +270,7 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
     n_rej = int(ev.rejected_t.size)
     # the trained model's values scatter (plant bearings: about 0.4 mm per recording), and
     # one of them above a limit is no crossing: the first whose interval is above it is
-    noisy_lo = lo if ev.source != "fit" else None
+    noisy_lo = None if fitted else lo
     a = Assessment(kind=kind, id=id_, label=label, unit=unit, status=status, reason=reason,
                    now=now, now_lo=now_lo, now_hi=now_hi, worn=worn, critical=critical,
                    slope_per_30d=30.0 * trend.slope if trend is not None else math.nan,
@@ -294,7 +292,7 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
                        worn=worn, critical=critical, trend=trend, worn_at=w_at,
                        critical_at=c_at, status=status, horizon=horizon, note=note,
                        rejected_t=ev.rejected_t, rejected_y=ev.rejected_y, quantity=quantity,
-                       evidence=("identified (95 % CI)" if ev.source == "fit" else
+                       evidence=("identified (95 % CI)" if fitted else
                                  "diagnosed (95 % interval)"))
     return a, panel
 
@@ -305,8 +303,8 @@ def _latest_state(diag: pd.DataFrame, kind: str, target: str) -> tuple[str | Non
     if d.empty:
         return None, False
     last = d.sort_values(["t0_ns", "recording_pk"]).iloc[-1]
-    unc = last["uncertain"] if "uncertain" in last.index else None
-    return str(last["state"]), bool(unc) if unc is not None and not pd.isna(unc) else False
+    unc = last.get("uncertain")
+    return str(last["state"]), bool(pd.notna(unc) and unc)
 
 
 def _col(d: pd.DataFrame, name: str) -> np.ndarray:
