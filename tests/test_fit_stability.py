@@ -41,3 +41,36 @@ def test_the_fits_budget_is_cpu_time_and_stops_further_starts(mill, case):
                    direct=False, uncertainty=False, time_budget_s=1e-6)
     assert len(res.solver.starts) == 1
     assert any("time budget of 1e-06 CPU s ran out after 1 solve" in w for w in res.warnings)
+
+
+def test_the_cpu_cap_of_a_stage_is_what_is_left_of_the_solves_bound():
+    """Closed forms of ``stage_cpu_cap``: no bound, the stage's own bound tighter, spent, left."""
+    from ident.fit.collocation import CPU_CAP_STEP, stage_cpu_cap
+
+    assert stage_cpu_cap(None, 10.0, 240.0) is None
+    assert stage_cpu_cap(1000.0, 10.0, 240.0) is None  # IPOPT's own 240 s is the tighter
+    assert stage_cpu_cap(30.0, 30.0, 240.0) == 0.0
+    assert stage_cpu_cap(30.0, 40.0, 240.0) == 0.0
+    assert stage_cpu_cap(30.0, 18.0, 240.0) == pytest.approx(12.0 + (-12.0 % CPU_CAP_STEP))
+
+
+def test_a_solve_bounded_by_its_cpu_seconds_stops_unconverged(mill, case):
+    """The restart under way is bounded too (issue 12, item 7): a continuation given
+    2 CPU s stops inside or after its first stages, unconverged, and does not run on."""
+    import time
+
+    from ident.fit import build_fit_model, make_problem
+    from ident.fit.core import _shared_from_gaps
+    from ident.fit.problem import OUT_OF_TIME, initial_estimate
+
+    model = build_fit_model(mill)
+    problem = make_problem(model, case.windows)
+    method = Collocation()
+    start = initial_estimate(problem, _shared_from_gaps(model, {e.id: e.gap for e in mill.elements}),
+                             open_frac=0.5)
+    method.nlp(problem)  # the build is not the solve's time
+    t = time.thread_time()
+    est, info = method.solve(problem, start, cpu_s=2.0)
+    used = time.thread_time() - t
+    assert info.status == OUT_OF_TIME and not info.success, info.status
+    assert used < 2.0 + 5.0 + 3.0, used  # the bound, one cap step, the unpacking

@@ -54,7 +54,7 @@ import scipy.sparse as sps
 
 from ..errors import FitError
 from ..model.dynamics import Family
-from .problem import Estimate, Problem, SolveInfo, StageInfo
+from .problem import OUT_OF_TIME, Estimate, Problem, SolveInfo, StageInfo
 
 __all__ = ["Collocation", "CollocationNLP", "simulate_estimate", "element_shape", "stationary",
            "STATIONARY"]
@@ -102,11 +102,13 @@ class CollocationNLP:
     _solvers: dict = field(default_factory=dict, repr=False)
 
     def solver(self, *, warm: bool, tol: float | None = None,
-               max_iter: int | None = None) -> Any:
-        """The IPOPT instance (cold or warm start; ``tol``, ``max_iter`` override the strategy)."""
-        if tol is None and max_iter is None:
+               max_iter: int | None = None, max_cpu_s: float | None = None) -> Any:
+        """The IPOPT instance (cold or warm start; ``tol``, ``max_iter`` and ``max_cpu_s``
+        override the strategy)."""
+        if tol is None and max_iter is None and max_cpu_s is None:
             return self.warm if warm else self.cold
-        key = (warm, None if tol is None else float(tol), max_iter)
+        key = (warm, None if tol is None else float(tol), max_iter,
+               None if max_cpu_s is None else float(max_cpu_s))
         got = self._solvers.get(key)
         if got is None:
             opts = dict(self.options)
@@ -117,6 +119,8 @@ class CollocationNLP:
                              "ipopt.acceptable_iter": 5})
             if max_iter is not None:
                 opts["ipopt.max_iter"] = int(max_iter)
+            if max_cpu_s is not None:
+                opts["ipopt.max_cpu_time"] = float(max_cpu_s)
             got = ca.nlpsol(f"ident_coll_{'warm' if warm else 'cold'}_loose", "ipopt",
                             self.definition, opts)
             self._solvers[key] = got
@@ -261,13 +265,15 @@ class Collocation:
     # ---- solving ---------------------------------------------------------------------
     def solve(self, problem: Problem, start: Estimate, *, widths: Sequence[float] | None = None,
               horizons: Sequence[float] | None = None,
-              schedule: Sequence[tuple[float, float | None]] | None = None
-              ) -> tuple[Estimate, SolveInfo]:
+              schedule: Sequence[tuple[float, float | None]] | None = None,
+              cpu_s: float | None = None) -> tuple[Estimate, SolveInfo]:
         """Fit ``problem`` from ``start``, continuing over the smoothing widths.
 
         A ``start`` that came out of this NLP (``start.extra["V"]``) warm-starts
         primal and dual variables; otherwise the collocation states are
-        initialised by simulating the start.
+        initialised by simulating the start.  ``cpu_s`` bounds the CPU seconds
+        of the whole continuation (:func:`stage_cpu_cap`); where it runs out the
+        solve stops unconverged with :data:`~ident.fit.problem.OUT_OF_TIME`.
 
         Returns
         -------
@@ -302,8 +308,13 @@ class Collocation:
         stages = []
         total_it = 0
         status, success, cost = "Not_Started", False, math.nan
+        cpu0 = time.thread_time()
         for k_stage, (w, hz) in enumerate(schedule):
             ts = time.perf_counter()
+            cap = stage_cpu_cap(cpu_s, time.thread_time() - cpu0, self.max_cpu_s)
+            if cap is not None and cap <= 0:
+                status, success = OUT_OF_TIME, False
+                break
             P = _params(nlp, problem, scales, w, hz)
             args = dict(x0=V, p=P, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             if self.width_warm == "primal" and k_stage and w != schedule[k_stage - 1][0]:
@@ -315,7 +326,8 @@ class Collocation:
             solver = nlp.solver(warm=warm, tol=None if last or self.stage_tol is None
                                 else max(self.stage_tol, self.tol),
                                 max_iter=None if last or self.stage_max_iter is None
-                                else min(self.stage_max_iter, self.max_iter))
+                                else min(self.stage_max_iter, self.max_iter),
+                                max_cpu_s=cap)
             sol = solver(**args)
             st = solver.stats()
             status = str(st.get("return_status", "unknown"))
@@ -387,6 +399,25 @@ class Collocation:
 #: Status of a last stage that ran into its iteration or CPU bound at a stationary cost
 #: (:func:`stationary`): converged for the verdict, and said so in its own words.
 STATIONARY = "Stationary_At_Limit"
+
+#: Granularity of :func:`stage_cpu_cap`, CPU s: each distinct cap is an IPOPT instance.
+CPU_CAP_STEP = 5.0
+
+
+def stage_cpu_cap(cpu_s: float | None, used: float, max_cpu_s: float) -> float | None:
+    """CPU seconds the next stage of a solve bounded by ``cpu_s`` may take.
+
+    None where the stage's own bound ``max_cpu_s`` is the tighter (or there is
+    no ``cpu_s``); 0 where nothing is left; otherwise what is left, rounded up
+    to :data:`CPU_CAP_STEP` (a few distinct IPOPT instances, not one per stage).
+    """
+    if cpu_s is None:
+        return None
+    left = float(cpu_s) - float(used)
+    if left <= 0:
+        return 0.0
+    cap = math.ceil(left / CPU_CAP_STEP) * CPU_CAP_STEP
+    return None if cap >= max_cpu_s else cap
 
 #: Iterations over which :func:`stationary` looks at the cost, and the relative change
 #: it allows there.  The cost is half the mean squared weighted residual over ~10^4

@@ -52,7 +52,7 @@ from ..model.linear import incidence
 from .collocation import Collocation
 from ..model.linear import angles_from_deflections
 from .model import FitModel, build_fit_model
-from .problem import Estimate, Problem, SolveInfo, initial_estimate, make_problem
+from .problem import OUT_OF_TIME, Estimate, Problem, SolveInfo, initial_estimate, make_problem
 from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
 from .uncertainty import Z95, Covariance, channel_information, collocation_sensitivity, \
@@ -182,9 +182,12 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         within 5 %.
     time_budget_s : float, optional
         CPU seconds of the fitting thread (:func:`time.thread_time`) after
-        which no further start or path is begun (the one under way finishes;
-        each IPOPT call is bounded by the strategy's ``max_cpu_s``).  The fit
-        reports what it reached and a warning.  CPU, not wall, time: the same
+        which no further start or path is begun, and at which a restart under
+        way stops unfinished (unconverged; only the first start runs to its
+        end, each IPOPT call bounded by the strategy's ``max_cpu_s``, so that
+        every fit ends somewhere).  The fit reports what it reached and a
+        warning.  Before, a restart round begun just inside a 900 s budget
+        ran on to 1653 s (plantsim hsm-f1, seed 7000's study).  CPU, not wall, time: the same
         recording gets the same restarts on a busy machine as on an idle one
         (on wall time, a campaign beside other work tried fewer).
     progress : bool
@@ -283,15 +286,26 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if time_budget_s is None or time.thread_time() - cpu_all <= time_budget_s or not runs:
             return False
         if not any("time budget" in w for w in warns):
+            cut = [r[4] for r in runs if r[3].status == OUT_OF_TIME]
             warns.append(f"the fit's time budget of {time_budget_s:g} CPU s ran out after "
-                         f"{len(runs)} solve(s); the remaining starts or paths were not tried")
+                         f"{len(runs)} solve(s)"
+                         + (f" (the {cut[-1]} run stopped unfinished)" if cut else "")
+                         + "; the remaining starts or paths were not tried")
         return True
+
+    def left() -> float | None:
+        """CPU seconds the next solve may take: what is left of the budget; unbounded
+        (each IPOPT call's own bound) for the first, so that every fit ends somewhere."""
+        if time_budget_s is None or not runs:
+            return None
+        return time_budget_s - (time.thread_time() - cpu_all)
 
     for k, (sv, base) in enumerate(zip(start_vecs, bases)):
         for path, settle, widths, horizons in paths:
             if over_budget():
                 break
-            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
+            est, info = _solve_start(method, problem, held, base, settle, widths, horizons,
+                                     left())
             build_s += info.build_seconds
             runs.append((k, sv, est, info, path))
         if bar:
@@ -302,7 +316,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             if over_budget():
                 break
             path, settle, widths, horizons = held_path
-            est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
+            est, info = _solve_start(method, problem, held, base, settle, widths, horizons,
+                                     left())
             build_s += info.build_seconds
             runs.append((k, sv, est, info, path))
     def still_above() -> bool:
@@ -316,7 +331,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         done.append(sv)
         base = _start_from_baseline(problem, lin_est, sv, open_frac)
         _, settle, widths, horizons = path
-        est, info = _solve_start(method, problem, held, base, settle, widths, horizons)
+        est, info = _solve_start(method, problem, held, base, settle, widths, horizons, left())
         build_s += info.build_seconds
         runs.append((k, sv, est, info, tag))
 
@@ -631,20 +646,27 @@ def _window_lengths(method: Any, problem: Problem, r: np.ndarray) -> list[int]:
 # ---- helpers ------------------------------------------------------------------------------
 def _solve_start(method: Any, problem: Problem, held: Problem, est0: Estimate,
                  settle: Sequence[float], widths: Sequence[float] | None,
-                 horizons: Sequence[float] | None) -> tuple[Estimate, SolveInfo]:
+                 horizons: Sequence[float] | None, cpu_s: float | None = None
+                 ) -> tuple[Estimate, SolveInfo]:
     """Settle (shared parameters held) at ``settle``'s widths, then solve one start.
 
     ``settle=None``: the strategy's whole continuation with the shared
-    parameters held, then ``widths``/``horizons`` with them free.
+    parameters held, then ``widths``/``horizons`` with them free.  ``cpu_s``
+    bounds the CPU seconds of both together (None: each IPOPT call's own bound).
     """
+    cpu0 = time.thread_time()
+
+    def rest() -> float | None:
+        return None if cpu_s is None else cpu_s - (time.thread_time() - cpu0)
+
     try:
         settle_info = None
         if settle is None:  # the whole continuation with the shared parameters held
-            est0, settle_info = method.solve(held, est0)
+            est0, settle_info = method.solve(held, est0, cpu_s=rest())
         elif settle:
             est0, settle_info = method.solve(held, est0, widths=tuple(settle),
-                                             **_no_horizons(method))
-        est, info = method.solve(problem, est0, widths=widths, horizons=horizons)
+                                             cpu_s=rest(), **_no_horizons(method))
+        est, info = method.solve(problem, est0, widths=widths, horizons=horizons, cpu_s=rest())
         if settle_info is not None:
             info = replace(info, iterations=info.iterations + settle_info.iterations,
                            seconds=info.seconds + settle_info.seconds,

@@ -150,6 +150,10 @@ class StageInfo:
     cost: float
 
 
+#: Status of a solve its ``cpu_s`` bound stopped (IPOPT's own for ``max_cpu_time``).
+OUT_OF_TIME = "Maximum_CpuTime_Exceeded"
+
+
 @dataclass(frozen=True)
 class SolveInfo:
     """How a solve went (over its continuation stages).

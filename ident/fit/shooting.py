@@ -25,7 +25,7 @@ import scipy.optimize
 
 from ..errors import FitError
 from ..model.dynamics import Family
-from .problem import Estimate, Problem, SolveInfo, StageInfo
+from .problem import OUT_OF_TIME, Estimate, Problem, SolveInfo, StageInfo
 from .simulator import WindowSimulator, build_simulator
 
 __all__ = ["SingleShooting"]
@@ -183,9 +183,16 @@ class SingleShooting:
         return r, (np.vstack(Js) if jacobian else None)
 
     def solve(self, problem: Problem, start: Estimate, *, widths: Sequence[float] | None = None,
-              horizons: Sequence[float] | None = None) -> tuple[Estimate, SolveInfo]:
-        """Fit ``problem`` from ``start``, continuing over the horizons and smoothing widths."""
+              horizons: Sequence[float] | None = None,
+              cpu_s: float | None = None) -> tuple[Estimate, SolveInfo]:
+        """Fit ``problem`` from ``start``, continuing over the horizons and smoothing widths.
+
+        ``cpu_s`` bounds the CPU seconds of the continuation: no stage begins
+        after it ran out (the solve then stops unconverged,
+        :data:`~ident.fit.problem.OUT_OF_TIME`).
+        """
         t0 = time.perf_counter()
+        cpu0 = time.thread_time()
         m = problem.model
         widths = tuple(widths if widths is not None else self.widths)
         if m.family is not Family.G1:
@@ -203,6 +210,9 @@ class SingleShooting:
         schedule += [(w, None) for w in widths]
         for w, hz in schedule:
             ts = time.perf_counter()
+            if cpu_s is not None and time.thread_time() - cpu0 >= cpu_s:
+                status, success = OUT_OF_TIME, False
+                break
 
             def fun(th: np.ndarray) -> np.ndarray:
                 r, _ = self.residuals(problem, self._from_theta(problem, th * scale, start), w,
