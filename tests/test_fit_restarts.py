@@ -81,3 +81,36 @@ def test_a_traversal_the_noise_could_explain_counts_as_none(mill):
     assert got is not None
     k = model.shared_names.index("C57.gap")
     assert got[k] == pytest.approx(mill.element("C57").gap)
+
+
+def test_series_pairs_are_split_equally_then_swapped(mill):
+    """A pair of gaps in series is seen through its sum: the restarts move along that
+    ridge, to the equal split first (plantsim hsm-f1 5001: the only one of four
+    held-path restarts that reached the optimum), then to the swap; pairs already
+    about equal are left alone."""
+    from types import SimpleNamespace
+
+    from ident.fit.core import _series_starts, series_pairs
+
+    model = build_fit_model(mill)
+    pairs = series_pairs(mill)
+    assert pairs, "the test mill has elements in series"
+    gaps = {e.id: 2e-3 for e in mill.elements}
+    a, b = pairs[0]
+    gaps[a], gaps[b] = 0.4e-3, 1.2e-3
+    best = Estimate(shared=_shared_from_gaps(model, gaps), window=np.zeros((1, 1)),
+                    x0=np.zeros((1, 1)))
+    worse = Estimate(shared=_shared_from_gaps(model, {e.id: 9e-3 for e in mill.elements}),
+                     window=np.zeros((1, 1)), x0=np.zeros((1, 1)))
+    runs = [(0, None, worse, SimpleNamespace(cost=5.0), "continued"),
+            (1, None, best, SimpleNamespace(cost=3.0), "held")]
+    got = _series_starts(model, runs)
+    tags = [t for _, t in got]
+    moved = [p for p in pairs if abs(gaps[p[0]] - gaps[p[1]]) >= 0.1 * max(gaps[p[0]], gaps[p[1]])]
+    assert tags == [f"split {x}/{y}" for x, y in moved] + [f"swap {x}/{y}" for x, y in moved]
+    ia, ib = (model.shared_names.index(f"{e}.gap") for e in (a, b))
+    split, swap = got[tags.index(f"split {a}/{b}")][0], got[tags.index(f"swap {a}/{b}")][0]
+    assert split[ia] == pytest.approx(0.8e-3) and split[ib] == pytest.approx(0.8e-3)
+    assert (swap[ia], swap[ib]) == pytest.approx((1.2e-3, 0.4e-3))
+    others = [j for j in range(model.n_shared) if j not in (ia, ib)]
+    assert np.array_equal(split[others], best.shared[others])
