@@ -355,10 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drag-fraction", type=float, default=0.0, metavar="F",
                     help="train on a library with an idle drag in this fraction of its "
                          "samples (default 0: the model ident train makes)")
-    ap.add_argument("--fit", action="store_true",
+    ap.add_argument("--fit", action=argparse.BooleanOptionalAction, default=False,
                     help="diagnose as 'ident diagnose' does by default: run the fit and take "
                          "the state of every gap it identified from that gap (minutes per "
-                         "recording); without it, --no-fit: the trained model alone")
+                         "recording); --no-fit (the default): the trained model alone")
     ap.add_argument("--json", metavar="FILE", help="one line per recording")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings here")
     args = ap.parse_args(argv)
