@@ -158,6 +158,35 @@ def test_out_of_range_recording_is_uncertain(mill, tiny_model, tiny_library):
         assert t.probability < 0.5
 
 
+def test_dont_know_is_not_good():
+    """A recording far beyond the library: the probabilities become uniform (uncertain), and
+    the state is still the one the trees point to -- a tie is no reason to say "good" (a
+    clearance regressed at 1.2 mm beyond the library's range was reported good, p 0.33)."""
+    from threadpoolctl import threadpool_limits
+
+    from ident.diagnose.estimators import GapRegressor, WearClassifier
+    from ident.diagnose.model import DiagnosticModel, TargetModel
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 3.0e-3, 300)
+    X = np.column_stack([x, rng.normal(0.0, 1.0, 300)])
+    y = np.where(x > 1.8e-3, "critical", np.where(x > 1.0e-3, "worn", "good"))
+    with threadpool_limits(1):
+        tm = TargetModel(kind="bearing", features=("f0", "f1"),
+                         classifier=WearClassifier(max_iter=20, calibration=None,
+                                                   random_state=0).fit(X, y),
+                         regressor=GapRegressor(max_iter=20, random_state=0).fit(X, x),
+                         limits=(1.0e-3, 1.8e-3), importances=(), class_medians={})
+    model = DiagnosticModel(mill_name="m", mill_hash="h", versions={}, feature_names=("f0", "f1"),
+                            targets={"B1": tm}, n_samples=300)
+    d = diagnose_features(model, {"f0": 2.5e-3, "f1": 40.0}, explain=False).bearings["B1"]
+    assert d.novelty > 2.0 and d.uncertain
+    assert d.probabilities == pytest.approx({s: 1 / 3 for s in STATES})
+    assert d.state == "critical" and d.size > 1.8e-3
+    inside = diagnose_features(model, {"f0": 2.5e-3, "f1": 0.0}, explain=False).bearings["B1"]
+    assert inside.state == "critical" and not inside.uncertain
+
+
 def test_artefact_roundtrip_and_refusals(mill, tiny_model, tmp_path):
     p = save_model(tiny_model, tmp_path / "m.joblib")
     from ident.io.writers import new_file_mode

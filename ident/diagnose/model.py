@@ -125,23 +125,33 @@ class TargetModel:
     observable: bool = True
     blend: float = 0.75
 
+    def state_proba_in_range(self, X: np.ndarray) -> np.ndarray:
+        """Probabilities of :data:`~ident.diagnose.states.STATES` as if ``X`` were in range.
+
+        The regressor's interval probabilities blended with the classifier's,
+        not shrunk by the novelty; shape (n, 3).
+        """
+        X = np.asarray(X, dtype=float)
+        p_clf = np.zeros((X.shape[0], len(STATES)))
+        raw = self.classifier.predict_proba_in_range(X)
+        for j, c in enumerate(self.classifier.classes_):
+            p_clf[:, STATES.index(str(c))] = raw[:, j]
+        return self.blend * self.regressor.predict_bin_proba(X, self.limits) + \
+            (1.0 - self.blend) * p_clf
+
     def state_proba(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Probabilities of :data:`~ident.diagnose.states.STATES` (in that order) and novelty.
 
         Returns
         -------
         proba : ndarray, shape (n, 3)
+            :meth:`state_proba_in_range` shrunk towards uniform as the novelty grows.
         novelty : ndarray, shape (n,)
             The distance ratio to the library (> 1: unusual).
         """
         X = np.asarray(X, dtype=float)
         nov = self.classifier.novelty_ratio(X)
-        p_clf = np.zeros((X.shape[0], len(STATES)))
-        raw = self.classifier.predict_proba_in_range(X)
-        for j, c in enumerate(self.classifier.classes_):
-            p_clf[:, STATES.index(str(c))] = raw[:, j]
-        p = self.blend * self.regressor.predict_bin_proba(X, self.limits) + \
-            (1.0 - self.blend) * p_clf
+        p = self.state_proba_in_range(X)
         return shrink_to_uniform(p, nov, span=self.classifier.novelty_span), nov
 
 
@@ -494,7 +504,9 @@ def diagnose_features(model: DiagnosticModel, features: pd.Series | Mapping[str,
                 warnings.append(f"{tid}: {int(np.isnan(x).sum())} of {x.size} features missing")
             proba, nov_ = tm.state_proba(x)
             probs = {s_: float(proba[0, i]) for i, s_ in enumerate(STATES)}
-            state = max(probs, key=probs.get)  # type: ignore[arg-type]
+            # the state is the in-range decision (shrinking towards uniform keeps its order);
+            # fully shrunk, the probabilities tie, and "don't know" must not read as "good"
+            state = STATES[int(np.argmax(tm.state_proba_in_range(x)[0]))]
             nov = float(nov_[0])
             size = float(tm.regressor.predict(x)[0])
             lo, hi = tm.regressor.predict_interval(x)[0]
