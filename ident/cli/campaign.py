@@ -44,8 +44,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-transients", type=int, metavar="N",
                    help="fit at most N transients per recording")
     p.add_argument("--fit-budget", type=float, default=None, metavar="S",
-                   help="CPU seconds after which a recording's fit begins no further start "
-                        "or path (default 600; the solve under way finishes)")
+                   help="CPU seconds of a recording's fit: after them it begins no further "
+                        "start or path and a restart under way stops unfinished (default 600)")
     p.add_argument("--no-fit", action="store_true", help="skip the gap fit")
     p.add_argument("--no-diagnose", action="store_true", help="skip the wear diagnosis")
     p.add_argument("--model", metavar="MODEL",

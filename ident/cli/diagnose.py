@@ -51,8 +51,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                      help="do not run the fit: the trained model decides every state "
                           "(seconds instead of minutes; less accurate for worn gaps)")
     p.add_argument("--fit-budget", type=float, default=None, metavar="S",
-                   help="CPU seconds after which the fit run here begins no further start "
-                        "or path (default: the campaign's, 600)")
+                   help="CPU seconds of the fit run here: after them it begins no further "
+                        "start or path and a restart under way stops unfinished (default: "
+                        "the campaign's, 600)")
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, metavar="N",
                    help="library size when a model has to be trained first")
     p.add_argument("--jobs", type=int, default=2, metavar="N",

@@ -85,9 +85,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "drag torques spread over the shafts and the load ramps' skew "
                         "(default; --no-nuisance leaves them out)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
-                   help="CPU seconds after which no further start or path is begun "
-                        "(default 1800; each solver call is also bounded in iterations and "
-                        "CPU time)")
+                   help="CPU seconds of the fit: after them no further start or path is "
+                        "begun and a restart under way stops unfinished (default 1800; the "
+                        "first start always runs to its end, each solver call bounded in "
+                        "iterations and CPU time)")
     p.add_argument("--no-uncertainty", action="store_true",
                    help="skip standard errors and intervals (faster)")
 

@@ -39,7 +39,7 @@ ProcessFn = Callable[[Path, Mill, "Settings"], RecordingOutcome]
 _VERSIONED = ("ident", "numpy", "scipy", "pandas", "casadi", "scikit-learn", "mcap", "sqlalchemy")
 
 
-#: Default wall budget of one recording's fit in a campaign, s (:class:`Settings`).
+#: Default CPU budget of one recording's fit in a campaign, s (:class:`Settings`).
 FIT_BUDGET_S = 600.0
 
 
@@ -81,8 +81,8 @@ class Settings:
         study on plant recordings that would justify them has not run yet.
     fit_budget_s : float
         CPU seconds after which a recording's fit begins no further start or path
-        (``fit_gaps(time_budget_s=...)``; the solve under way finishes, each IPOPT
-        call being bounded itself), so that one recording whose fit keeps restarting
+        and a restart under way stops unfinished (``fit_gaps(time_budget_s=...)``;
+        only the first start runs to its end, each IPOPT call bounded itself), so that one recording whose fit keeps restarting
         cannot hold a worker without end: it is stored with what the fit reached and
         the fit's warning.  The default, 600 s, is 10-20 times a fit that passes
         first time on the project's recordings.
