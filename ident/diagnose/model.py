@@ -13,9 +13,12 @@ intervals alone were the more accurate for most targets, the 3/4 mix the best
 on average (0, 1/2, 3/4 and 1 tried); the classifier's novelty detector says
 when a recording lies outside the library, and then both are shrunk towards
 "don't know"; both are shrunk towards "don't know" as the recording
-leaves the library's range.  Elements learn from the torque features,
-bearings from their accelerometers' features (seed section 2.2) plus the
-static torque, rise time and idle load; each target from the
+leaves the library's range; a recording so far outside that the
+probabilities are uniform keeps the state the trees point to (a tie is no
+reason to say "good").  Elements learn from the torque features,
+bearings from their accelerometers' features (seed section 2.2) plus their
+context: the static torque, rise time and idle load, and the numbers of bites
+and releases the medians are of (always kept); each target from the
 ``max_features`` of its features that rank-correlate best with its gap over
 the library.  An element without a torque channel on it is diagnosed all the
 same but marked ``observable: False``.
@@ -24,8 +27,10 @@ The artefact (:func:`save_model`/:func:`load_model`) is a joblib file of the
 model with the mill's content hash (:meth:`~ident.description.Mill.content_hash`,
 the parsed description's values: a comment or a reformatted file keeps it, any
 changed value changes it) and the versions of ident, scikit-learn and numpy it
-was trained with; loading refuses another mill or other versions with
-:class:`~ident.errors.ModelArtifactError`.  The default cache is
+was trained with, and the training recipe (:data:`TRAINING_RECIPE`); loading
+refuses another mill, an older recipe or other versions with
+:class:`~ident.errors.ModelArtifactError`, and ``ident diagnose`` and the
+campaign then retrain the cached model.  The default cache is
 ``$IDENT_CACHE/models/<content hash>.joblib`` (or ``~/.cache/ident/models``).
 """
 
@@ -49,11 +54,18 @@ from .states import STATES
 
 __all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "save_model",
            "load_model", "model_cache_path", "library_versions", "diagnose_features",
-           "element_feature_names", "bearing_feature_names", "UNCERTAIN_PROBABILITY"]
+           "element_feature_names", "bearing_feature_names", "bearing_context_names",
+           "UNCERTAIN_PROBABILITY", "TRAINING_RECIPE"]
 
 #: a decision whose probability is below this is reported ``uncertain``
 UNCERTAIN_PROBABILITY = 0.6
 ARTEFACT_FORMAT = 2  # 2: keyed by the mill's content hash, not its file's bytes
+#: the library and training recipe an artefact was made by; bump it whenever the library's
+#: draws, its simulation or the features change, so that cached models of an older recipe
+#: are retrained rather than used (2: idle drag in half the samples, spread uniformly over
+#: the masses; 2-8 bars; rise times 5-80 ms; the numbers of transients in the bearings'
+#: context)
+TRAINING_RECIPE = 2
 
 
 def library_versions() -> dict[str, str]:
@@ -77,6 +89,8 @@ def _is_accel(name: str) -> bool:
 
 #: per-transient context features (static torque, fitted rise time, load between bars)
 CONTEXT_FEATURES: tuple[str, ...] = ("static", "rise_ms", "idle_level")
+#: recording context of a bearing: how many transients its medians are of
+COUNT_FEATURES: tuple[str, ...] = ("n_bites", "n_releases")
 
 
 def element_feature_names(columns: list[str]) -> list[str]:
@@ -84,11 +98,17 @@ def element_feature_names(columns: list[str]) -> list[str]:
     return [c for c in columns if not _is_accel(c) and not c.startswith("n_")]
 
 
-def bearing_feature_names(columns: list[str], bearing_id: str) -> list[str]:
-    """A bearing's accelerometer features plus the static torque, rise time and idle load."""
+def bearing_context_names(columns: list[str]) -> list[str]:
+    """The bearings' context: static torque, rise time, idle load, numbers of transients."""
     ctx = {f"{k}.{c}" for k in ("bite", "release") for c in CONTEXT_FEATURES}
+    ctx.update(COUNT_FEATURES)
+    return [c for c in columns if c in ctx]
+
+
+def bearing_feature_names(columns: list[str], bearing_id: str) -> list[str]:
+    """A bearing's accelerometer features plus its context (:func:`bearing_context_names`)."""
     return [c for c in columns if _is_accel(c) and c.split(".")[1].startswith(f"{bearing_id}:")] \
-        + [c for c in columns if c in ctx]
+        + bearing_context_names(columns)
 
 
 @dataclass(frozen=True)
@@ -213,13 +233,17 @@ def _rank_columns(X: np.ndarray) -> np.ndarray:
 def select_features(X: np.ndarray, y: np.ndarray, names: list[str], k: int) -> list[str]:
     """The ``k`` columns whose ranks correlate best (absolute Spearman) with ``y``.
 
-    Columns with fewer than two finite values or no spread are never chosen.
+    Columns with no spread, or with finite values in no more than a third of the rows
+    (at least two), are never chosen: the regressor's 3-fold out-of-fold predictions
+    could then train on a fold where the column has none, which the trees' binning
+    cannot take (a 10-sample library of 2-8 bars did that).
     """
     X = np.asarray(X, dtype=float)
     finite = np.isfinite(X)
     lo = np.where(finite, X, np.inf).min(axis=0)
     hi = np.where(finite, X, -np.inf).max(axis=0)
-    usable = (finite.sum(axis=0) >= 2) & (hi > lo)
+    need = max(2, -(-X.shape[0] // 3) + 1)
+    usable = (finite.sum(axis=0) >= need) & (hi > lo)
     idx = np.flatnonzero(usable)
     if idx.size <= k:
         return [names[i] for i in idx]
@@ -305,7 +329,7 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
     if library.bearings:
         for b in mill.bearings:
             names = bearing_feature_names(cols, b.id)
-            if len(names) > len(CONTEXT_FEATURES) * 2:
+            if len(names) > len(bearing_context_names(cols)):
                 jobs.append((b.id, "bearing", names, f"{b.id}.state", f"{b.id}.clearance",
                              (b.clearance_worn, b.clearance_critical)))
     with threadpool_limits(1):
@@ -313,7 +337,12 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
             if progress is not None:
                 progress(tid)
             yr = library.truth[rcol].to_numpy(dtype=float)
-            names = select_features(X_all[names].to_numpy(dtype=float), yr, names, max_features)
+            # a bearing's context does not correlate with its clearance, it tells the trees
+            # how to read the accelerometers: kept, not ranked
+            keep = bearing_context_names(cols) if kind == "bearing" else []
+            ranked = [c for c in names if c not in keep]
+            names = select_features(X_all[ranked].to_numpy(dtype=float), yr, ranked,
+                                    max_features - len(keep)) + keep
             X = X_all[names].to_numpy(dtype=float)
             y = library.truth[ycol].to_numpy()
             # leaves of at least 10 samples, fewer for a small library (tests, demos)
@@ -374,7 +403,8 @@ def save_model(model: DiagnosticModel, path: str | Path) -> Path:
     finally:
         os.close(fd)
     try:
-        joblib.dump({"format": ARTEFACT_FORMAT, "mill_hash": model.mill_hash,
+        joblib.dump({"format": ARTEFACT_FORMAT, "recipe": TRAINING_RECIPE,
+                     "mill_hash": model.mill_hash,
                      "versions": dict(model.versions), "model": model}, tmp, compress=3)
         os.replace(tmp, path)
     except BaseException:
@@ -389,7 +419,8 @@ def load_model(path: str | Path, mill: Mill) -> DiagnosticModel:
     Raises
     ------
     ModelArtifactError
-        Unreadable file, another mill (content hash) or other library versions.
+        Unreadable file, another mill (content hash), an older training recipe
+        (:data:`TRAINING_RECIPE`) or other library versions.
     """
     import joblib
 
@@ -405,6 +436,11 @@ def load_model(path: str | Path, mill: Mill) -> DiagnosticModel:
             not isinstance(data.get("model"), DiagnosticModel):
         raise ModelArtifactError(f"{path} is not an ident diagnosis model (format "
                                  f"{ARTEFACT_FORMAT})")
+    if data.get("recipe", 1) != TRAINING_RECIPE:
+        raise ModelArtifactError(
+            f"model artefact {path} was trained by an older library recipe "
+            f"({data.get('recipe', 1)}, now {TRAINING_RECIPE}); retrain with 'ident train "
+            f"--mill {mill.source or 'MILL'} --out {path}'")
     found, want = data["mill_hash"], mill.content_hash()
     if found != want:
         raise ModelArtifactError(
