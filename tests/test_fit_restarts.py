@@ -102,8 +102,8 @@ def test_series_pairs_are_split_equally_then_swapped(mill):
                     x0=np.zeros((1, 1)))
     worse = Estimate(shared=_shared_from_gaps(model, {e.id: 9e-3 for e in mill.elements}),
                      window=np.zeros((1, 1)), x0=np.zeros((1, 1)))
-    runs = [(0, None, worse, SimpleNamespace(cost=5.0), "continued"),
-            (1, None, best, SimpleNamespace(cost=3.0), "held")]
+    runs = [(0, None, worse, SimpleNamespace(cost=5.0, success=True), "continued"),
+            (1, None, best, SimpleNamespace(cost=3.0, success=True), "held")]
     got = _series_starts(model, runs)
     tags = [t for _, t in got]
     moved = [p for p in pairs if abs(gaps[p[0]] - gaps[p[1]]) >= 0.1 * max(gaps[p[0]], gaps[p[1]])]

@@ -189,9 +189,10 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         end, each IPOPT call bounded by the strategy's ``max_cpu_s``, so that
         every fit ends somewhere).  The fit reports what it reached and a
         warning.  Before, a restart round begun just inside a 900 s budget
-        ran on to 1653 s (plantsim hsm-f1, seed 7000's study).  CPU, not wall, time: the same
-        recording gets the same restarts on a busy machine as on an idle one
-        (on wall time, a campaign beside other work tried fewer).
+        ran on to 1653 s (plantsim hsm-f1, seed 7000's study).  CPU, not
+        wall, time: the same recording gets the same restarts on a busy
+        machine as on an idle one (on wall time, a campaign beside other work
+        tried fewer).
     progress : bool
         Progress bar on stderr.
 
@@ -631,10 +632,9 @@ def _series_starts(model: FitModel, runs: list) -> list[tuple[np.ndarray, str]]:
     equal split 0.83/0.83 at the optimum (2.42, every gap right; from the truth: the
     same).
     """
-    pool = [r for r in runs if np.isfinite(r[3].cost)]
-    if not pool:
+    if not runs:
         return []
-    best = min(pool, key=lambda r: r[3].cost)[2].shared
+    best = _best_run(runs)[2].shared
     splits, swaps = [], []
     for a, b in series_pairs(model.mill):
         ia, ib = model.shared_names.index(f"{a}.gap"), model.shared_names.index(f"{b}.gap")
