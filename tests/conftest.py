@@ -53,18 +53,19 @@ def _hermetic_cache(tmp_path_factory):
         os.environ["IDENT_CACHE"] = old
 
 
-#: Test modules that take minutes, longest first (seconds on one worker in a run of the
-#: suite on this 2-core box, 2026-12-03: discrepancy_hidden 516, notebooks 403, diagnose 386,
-#: campaign_e2e 224, diagnose_cold 173, fit 151, simulate_independent 143, pipelines ~140,
-#: fit_cli 97; 44.6 min in all; fit_plant, added later, about 450 s alone).  ``make test``
-#: runs each module on one xdist worker (``--dist loadscope``), and workers take modules
-#: in collection order: collecting these
-#: first lets the short modules fill in around them instead of one long module starting
-#: last (that run ended with one worker idle for 6.5 min while notebooks and pipelines ran).
-SLOW_MODULES = ("test_discrepancy_hidden.py", "test_fit_plant.py", "test_notebooks.py",
-                "test_diagnose.py", "test_campaign_e2e.py", "test_diagnose_cold.py", "test_fit.py",
-                "test_simulate_independent.py", "test_pipelines.py", "test_fit_cli.py",
-                "test_fit_recovery.py")
+#: Test modules that take minutes, longest first (seconds on one worker, from the slowest
+#: tests of a run of the suite on this 2-core box, 2026-12-05: notebooks ~460, fit_plant
+#: ~460, fit ~250, discrepancy_hidden ~180, campaign_e2e ~180, diagnose ~150, fit_cli ~140
+#: (once its --start-from test stopped after one run), pipelines ~60, diagnose_cold ~50;
+#: 23.4 min in all, before that change).  ``make test`` runs each module on one xdist
+#: worker (``--dist loadscope``), and workers take modules in collection order: collecting
+#: these first lets the short modules fill in around them instead of one long module
+#: starting last (a run of 2026-12-03 ended with one worker idle for 6.5 min while
+#: notebooks and pipelines ran).
+SLOW_MODULES = ("test_notebooks.py", "test_fit_plant.py", "test_fit.py",
+                "test_discrepancy_hidden.py", "test_campaign_e2e.py", "test_diagnose.py",
+                "test_fit_cli.py", "test_pipelines.py", "test_diagnose_cold.py",
+                "test_simulate_independent.py", "test_fit_recovery.py")
 
 
 def pytest_collection_modifyitems(config, items):
