@@ -59,9 +59,9 @@ recordings the fit identified    3/6            3/6
 
 Every element the fit identified was in the right state (30/30).  The fit identified
 nothing in the other six recordings, and those hold all the misses.  On cold-s5 (1300,
-1303, 1305) several gaps were 5-10 mrad (worn or critical), and every 95 % interval came
-out wider than the identifiability limit (+-0.6 to +-6.5 mrad). 1303 also kept a T_C12
-model error of 18.6 %. Those three fits ran 614-910 s of wall time on a busy machine.
+1303, 1305) several gaps were 5-10 mrad (worn or critical), and the 95 % intervals came
+out wider than the identifiability limit (+-0.6 to +-6.5 mrad); 1303's C23 was rejected
+for a T_C12 model error of 18.6 %. Those three fits ran 614-910 s of wall time on a busy machine.
 Then the trained model decided: critical C12/C45 read worn, worn C12/C23 read good.
 On hsm-f1, 1300 (C12 critical, C34 and C57 worn at 6 mrad) stopped at its CPU bound
 unconverged, and the model called C34 and C57 good.  In 1301, T_C34 kept an 8.0 % model
