@@ -63,6 +63,11 @@ nothing in the other six recordings, and those hold all the misses.  On cold-s5 
 out wider than the identifiability limit (+-0.6 to +-6.5 mrad); 1303's C23 was rejected
 for a T_C12 model error of 18.6 %. Those three fits ran 614-910 s of wall time on a busy machine.
 Then the trained model decided: critical C12/C45 read worn, worn C12/C23 read good.
+Refitted alone (``ident fit --time-budget 600``), 1300 and 1305 ended in wrong basins:
+the series pair C12/C23 split wrong (1300: 13.77/3.40 mrad, truth 9.98/9.13; 1305:
+8.28/1.27, truth 5.26/6.81), 60-2300 times the noise in the transient band, the width
+the model-error part of the interval; 1305's ``split C12/C23`` restart found that pair
+right (5.22/6.86) but with C34/C45 wrong, at a higher cost (38.1 against 16.1).
 On hsm-f1, 1300 (C12 critical, C34 and C57 worn at 6 mrad) stopped at its CPU bound
 unconverged, and the model called C34 and C57 good.  In 1301, T_C34 kept an 8.0 % model
 error.  In 1304 (C46 critical at 11.5 mrad) the intervals were wide.  The fit study
