@@ -103,3 +103,17 @@ def test_gap_regressor_interval_probabilities_are_calibrated():
     assert np.mean(np.argmax(P, axis=1) == hit) > 0.75
     with pytest.raises(ValueError, match="'edges' parameter of predict_bin_proba"):
         reg.predict_bin_proba(Xt, (2.0, 1.0))
+
+
+def test_the_regressed_gaps_of_the_seen_elements_are_the_fits_data_start():
+    from ident.diagnose.model import Diagnosis, TargetDiagnosis
+
+    def td(size: float, observable: bool) -> TargetDiagnosis:
+        return TargetDiagnosis(state="worn", probability=0.8,
+                               probabilities={"good": 0.1, "worn": 0.8, "critical": 0.1},
+                               size=size, interval=(0.5 * size, 1.5 * size),
+                               observable=observable, uncertain=False, novelty=0.2)
+
+    d = Diagnosis(elements={"C12": td(6.6e-3, True), "C23": td(2e-3, False)},
+                  bearings={"B23": td(3e-4, True)})
+    assert d.gap_start() == {"C12": 6.6e-3}

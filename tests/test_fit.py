@@ -214,6 +214,8 @@ def test_bad_input_raises_fit_errors(mill, tmp_path):
         fit_gaps(mill, case.windows, family="g7")
     with pytest.raises(FitError, match="unknown element 'C99'"):
         fit_gaps(mill, case.windows, starts=[{"C99": 0.001}])
+    with pytest.raises(FitError, match="data_starts: unknown element 'C99'"):
+        fit_gaps(mill, case.windows, data_starts=[{"C99": 0.001}])
     with pytest.raises(FitError, match="method must be"):
         fit_gaps(mill, case.windows, method="ipopt")
     with pytest.raises(FitError, match="elements_per_sample"):

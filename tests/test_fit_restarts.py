@@ -114,3 +114,30 @@ def test_series_pairs_are_split_equally_then_swapped(mill):
     assert (swap[ia], swap[ib]) == pytest.approx((1.2e-3, 0.4e-3))
     others = [j for j in range(model.n_shared) if j not in (ia, ib)]
     assert np.array_equal(split[others], best.shared[others])
+
+
+def _run(cost: float, success: bool, tag: str = "continued") -> tuple:
+    from ident.fit.problem import SolveInfo
+
+    info = SolveInfo(method="collocation", status="Solve_Succeeded" if success else
+                     "Maximum_Iterations_Exceeded", success=success, iterations=300,
+                     seconds=1.0, cost=cost)
+    return (0, np.zeros(1), object(), info, tag)
+
+
+def test_a_run_stopped_at_its_bound_below_every_converged_one_is_resumed():
+    from ident.fit.core import RESTART_GAIN, _resume_candidate
+
+    # plant cold-s5 1300 (diagnose_study): the data start's held path stopped at 300
+    # iterations at cost 1.36, the best converged run at 22.7
+    stopped = _run(1.36, False, "data")
+    runs = [_run(22.7, True), _run(195.3, False, "held"), stopped]
+    assert _resume_candidate(runs) is stopped
+    # converged, or not below the best converged by more than RESTART_GAIN: nothing to resume
+    assert _resume_candidate([_run(22.7, True), _run(1.36, True)]) is None
+    assert _resume_candidate([_run(22.7, True),
+                              _run(22.7 * (1 - 0.5 * RESTART_GAIN), False)]) is None
+    assert _resume_candidate([_run(195.3, False), _run(22.7, True)]) is None
+    # nothing converged: the fit reports no convergence rather than a resumed guess
+    assert _resume_candidate([_run(3.0, False)]) is None
+    assert _resume_candidate([_run(float("inf"), False), _run(5.0, True)]) is None

@@ -61,7 +61,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
-            progress: bool = False) -> tuple[dict[str, Any] | None, str | None]:
+            data_starts: Any = (), progress: bool = False
+            ) -> tuple[dict[str, Any] | None, str | None]:
     """The recording's fit as ``ident fit`` runs it, for the verdicts.
 
     Parameters
@@ -72,6 +73,9 @@ def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
         The recording's load-step transients.
     budget_s : float
         The fit's time budget (``fit_gaps(time_budget_s=...)``).
+    data_starts : sequence of dict
+        Gaps to restart from where the mill file's lead astray
+        (``fit_gaps(data_starts=...)``): the trained model's.
     progress : bool
         Show the fit's progress bar.
 
@@ -89,7 +93,7 @@ def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
         return None, f"the fit stage is not installed ({exc})"
     try:
         result, _ = fit_recording(rec, mill, segments, time_budget_s=budget_s,
-                                  progress=progress)
+                                  data_starts=tuple(data_starts), progress=progress)
     except IdentError as exc:
         return None, str(exc)
     return result.to_dict(), None
@@ -178,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"ident diagnose: fitting the gaps (up to {budget:g} s; --no-fit "
                   f"skips)", file=sys.stderr)
         fit, why = run_fit(rec, mill, segments, budget_s=budget,
-                           progress=not args.quiet)
+                           data_starts=[diag.gap_start()], progress=not args.quiet)
         if fit is None:
             notes.append(f"the fit did not run ({why}); the trained model decides every "
                          f"state")

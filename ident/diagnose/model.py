@@ -504,6 +504,11 @@ class Diagnosis:
     bearings: dict[str, TargetDiagnosis]
     warnings: tuple[str, ...] = ()
 
+    def gap_start(self) -> dict[str, float]:
+        """The regressed gap of every element a torque channel sees, rad: a start for the
+        fit (``fit_gaps(data_starts=[...])``) where the mill file's gaps lead astray."""
+        return {eid: float(d.size) for eid, d in self.elements.items() if d.observable}
+
 
 def diagnose_features(model: DiagnosticModel, features: pd.Series | Mapping[str, float], *,
                       explain: bool = True, n_explain: int = 3) -> Diagnosis:

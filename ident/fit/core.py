@@ -73,6 +73,13 @@ RESTART_ROUNDS = 3
 #: Relative lowering of the best cost that makes a restart round worth repeating.
 RESTART_GAIN = 0.01
 
+#: Times a fit solves on a run that IPOPT stopped at its iteration or time bound below
+#: every converged run's cost (``solver.path`` ``"resume"``): from the trained model's
+#: gaps, plant cold-s5 (``validation.diagnose_study`` seed 1300, four gaps 2.3-10 mrad)
+#: reached cost 1.36 at the truth (1 % model error) when the last stage's 300 iterations
+#: ran out, while the best converged run sat at 198 and was reported.
+RESUME_MAX = 2
+
 
 
 def _progress(enabled: bool, total: int, desc: str) -> Any:
@@ -92,8 +99,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
              gap_max: float | None = None, open_frac: float = 0.5,
              fixed: dict[str, float] | None = None, effects: Sequence = (),
              uncertainty: bool = True, direct: bool | str = "auto",
-             restarts: str = "auto", nuisance: bool = True,
-             time_budget_s: float | None = None,
+             restarts: str = "auto", data_starts: Sequence[Mapping[str, float]] = (),
+             nuisance: bool = True, time_budget_s: float | None = None,
              progress: bool = False) -> FitResult:
     """Identify every element's gap from measured transient windows.
 
@@ -170,10 +177,30 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
           residuals at the channel next to them up to 30 times the noise
           (held path).
 
+        Before those rounds, each of ``data_starts`` (path ``"data"``).  Before
+        each round, and after each data start, the run of lowest cost is solved on
+        (path ``"resume"``) where IPOPT stopped it at a bound below every converged
+        run's cost (:data:`RESUME_MAX`).
+
         A round that lowers the best cost by more than :data:`RESTART_GAIN`
         begins another from the new best; the lowest cost wins as before.  The
         restarts stop at the first that passes the check: on the demo's day-14
         recording (spindle 5.7 mrad) the fit took 48.8 s instead of 94.7 s.
+    data_starts : sequence of dict
+        Gaps read from the data by other means (``{"C12": 0.0066, ...}``, rad;
+        missing elements take the mill file's), e.g. the trained wear model's
+        estimates (:meth:`ident.diagnose.Diagnosis.gap_start`): g1 with
+        ``restarts="auto"`` only, tried in turn after the baseline restart while the
+        best fit fails the check, each on the held path (the continuation with the
+        gaps held, then freed at the last width; ``solver.path`` ``"data"``).  With
+        several worn or critical gaps the mill file's gaps lead into wrong basins,
+        where the impacts of the idle rattle after a release come at the wrong
+        times: plant cold-s5 (``validation.diagnose_study`` seed 1300, gaps
+        2.3-10 mrad) fits to the noise at its true gaps (cost 1.05, 1 % model
+        error, the gaps held), but the fit from the mill file's ended at 22.7, and
+        the continued path even from the truth at 202 (the continuation's rounded
+        kinks move large gaps far off); from the trained model's gaps (35 % low)
+        the held path reached 1.36 at the truth.
     nuisance : bool
         Fit the plant nuisances with the gaps (default): per-window channel
         offsets, drag torques spread over the shafts and the ramps' skew
@@ -227,7 +254,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         kw["gap_max"] = gap_max
     model = build_fit_model(mill, family=family, effects=effects, **kw)
     problem = make_problem(model, windows)
-    for dct, what in ((starts or [], "starts"), ([fixed] if fixed else [], "fixed")):
+    for dct, what in ((starts or [], "starts"), ([fixed] if fixed else [], "fixed"),
+                      (data_starts, "data_starts")):
         for d in dct:
             for k in d:
                 eid = k.split(".")[0]
@@ -350,6 +378,9 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if not tried(sv):
             restart(sv, len(start_vecs), "baseline", paths[0])
     k_next = len(start_vecs) + 1
+    data_vecs = _start_vectors(model, [{k: max(float(v), min_start_gap) for k, v in d.items()}
+                                       for d in data_starts], 1, None,
+                               min_start_gap) if data_starts else []
 
     def attempt(sv: np.ndarray, tag: str, path: tuple) -> None:
         """A restart from ``sv`` (the fixed parameters put back), unless already tried."""
@@ -360,7 +391,30 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             restart(sv, k_next, tag, path)
             k_next += 1
 
+    resumed: list[int] = []
+
+    def resume() -> None:
+        """The run of lowest cost, where IPOPT stopped it at a bound below every converged
+        run's cost, solved on from where it stopped (:data:`RESUME_MAX` times a fit)."""
+        run = _resume_candidate(runs)
+        if run is None or id(run[2]) in resumed or len(resumed) >= RESUME_MAX or \
+                not still_above():
+            return
+        k, sv, low, _, _ = run
+        resumed.append(id(low))
+        est, info = method.solve(problem, low, widths=final, cpu_s=left(),
+                                 **_no_horizons(method))
+        runs.append((k, sv, est, info, "resume"))
+
+    for sv in data_vecs:  # gaps read from the data by other means
+        if not still_above():
+            break
+        for mid, d in lin_model.drag(lin_est.shared).items():
+            sv[model.shared_names.index(f"{mid}.drag")] = d
+        attempt(sv, "data", held_path)
+        resume()
     for _round in range(RESTART_ROUNDS):
+        resume()
         if not still_above():
             break
         best_cost = _best_run(runs)[3].cost
@@ -736,6 +790,19 @@ def _above_noise_floor(method: Any, problem: Problem, runs: list, *,
     check = band_check(problem, window_residuals(r, problem.model.ny,
                                                  _window_lengths(method, problem, r)))
     return not (check.all_at_noise if strict else check.all_pass)
+
+
+def _resume_candidate(runs: list) -> tuple | None:
+    """The run of lowest cost when it did not converge (IPOPT stopped it at a bound) and
+    ended more than :data:`RESTART_GAIN` below every converged run's cost; else None."""
+    fin = [r for r in runs if np.isfinite(r[3].cost)]
+    ok_costs = [r[3].cost for r in fin if r[3].success]
+    if not fin or not ok_costs:
+        return None
+    low = min(fin, key=lambda r: r[3].cost)
+    if low[3].success or not low[3].cost < min(ok_costs) * (1.0 - RESTART_GAIN):
+        return None
+    return low
 
 
 def _best_run(runs: list) -> tuple:

@@ -240,18 +240,28 @@ def ensure_model(mill: Mill, *, samples: int = DEFAULT_LIBRARY_SAMPLES, jobs: in
     return path
 
 
-def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
-              fit: Mapping[str, Any] | None) -> dict[str, Any]:
-    """cli.md ``diagnose`` JSON of one recording: the verdicts of its fit and the model."""
-    from ..diagnose import diagnosis_json, diagnose_features, load_model
-    from ..features import feature_summary, recording_features, transient_features
+def _model_diagnosis(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> tuple[Any, Any]:
+    """The trained model's diagnosis of one recording and its transient features."""
+    from ..diagnose import diagnose_features, load_model
+    from ..features import recording_features, transient_features
 
     model = load_model(model_file, mill)
     tf = transient_features(rec, mill, [s.t_step for s in segs], options=model.options)
     if len(tf.table) == 0:
         raise IdentError("the load steps found are too close together or too close to the "
                          "recording's ends to analyse")
-    diag = diagnose_features(model, recording_features(tf), explain=False)
+    return diagnose_features(model, recording_features(tf), explain=False), tf
+
+
+def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
+              fit: Mapping[str, Any] | None, pre: tuple[Any, Any] | None = None
+              ) -> dict[str, Any]:
+    """cli.md ``diagnose`` JSON of one recording: the verdicts of its fit and the model
+    (``pre``: :func:`_model_diagnosis` already computed)."""
+    from ..diagnose import diagnosis_json
+    from ..features import feature_summary
+
+    diag, tf = pre if pre is not None else _model_diagnosis(rec, mill, segs, model_file)
     return diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf, mill=mill))
 
 
@@ -364,6 +374,12 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                                     f"'ident train' (or 'ident diagnose' once) and rerun; "
                                     f"diagnosis skipped"))
 
+        pre = None  # the model's diagnosis first: its gaps are the fit's data start
+        if settings.diagnose and "diagnose" in stages and model_file is not None:
+            try:
+                pre = _model_diagnosis(rec, mill, segs, model_file)
+            except Exception:  # noqa: BLE001 -- the diagnose stage below says why
+                pre = None
         if settings.fit and "fit" in stages:
             from ..fit import fit_recording
 
@@ -374,6 +390,8 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
                 kw["family"] = settings.family
             if settings.starts:
                 kw["starts"] = [dict(settings.starts)]
+            if pre is not None:
+                kw["data_starts"] = (pre[0].gap_start(),)
             fitted = stage("fit", lambda: fit_recording(rec, mill, use, **kw))[0]
             parts["fit"] = jsonable(fitted.to_dict())
             if settings.per_transient:
@@ -385,7 +403,7 @@ def process_recording(path: str | os.PathLike, mill: Mill, settings: Settings) -
 
         if settings.diagnose and "diagnose" in stages and model_file is not None:
             parts["diagnosis"] = jsonable(stage("diagnose", lambda: _diagnose(
-                rec, mill, segs, model_file, parts["fit"])))
+                rec, mill, segs, model_file, parts["fit"], pre)))
         elif parts["fit"] is not None and "diagnose" in stages:
             from ..diagnose import diagnosis_json  # the verdicts of the fit alone
 
