@@ -206,7 +206,15 @@ def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, worn_case, 
     assert set(d["bearings"]) == {"B23", "B45"}
     assert all(v["source"] == "diagnosis" for v in d["bearings"].values())
     assert len(d["features"]["frequencies_hz"]) == 6 and d["transients"]["bites"] == 2
-    assert d["fit"] == {"source": "file", "path": str(fit), "identified": ["C46"]}
+    fit_block = d["fit"]
+    assert {k: fit_block[k] for k in ("source", "path", "identified")} == \
+        {"source": "file", "path": str(fit), "identified": ["C46"]}
+    # the fit's evidence on every element, what it did not identify too
+    assert fit_block["elements"]["C46"] == {"gap": 0.0099, "gap_ci95": [0.0095, 0.0103],
+                                            "identified": True}
+    assert fit_block["elements"]["C23"] == {"gap": 0.0123, "gap_ci95": [0.0, 0.02],
+                                            "identified": False,
+                                            "reason": "interval wider than the gap"}
 
 
 class _FakeFit:
@@ -230,12 +238,13 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     from ident.errors import FitError
 
     rec, model = worn_case
-    calls = []
+    calls, starts = [], []
 
     def fake_fit(mill_, windows, **kw):
         calls.append((len(windows), kw["time_budget_s"]))
+        starts.append(kw.get("data_starts"))
         doc = _fit(mill, C46=(0.0099, 0.0095, 0.0103))
-        return _FakeFit(dict(doc, solver={"seconds": 12.5}))
+        return _FakeFit(dict(doc, solver={"seconds": 12.5, "path": "data"}))
 
     monkeypatch.setattr(ident.fit.recording, "fit_gaps", fake_fit)
     out = tmp_path / "d.json"
@@ -245,7 +254,13 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     assert calls == [(4, 77.0)]  # 2 bars: 2 bites and 2 releases
     assert "fitting the gaps (up to 77 s" in capsys.readouterr().err
     d = json.loads(out.read_text())
-    assert d["fit"] == {"source": "run", "seconds": 12.5, "identified": ["C46"]}
+    assert {k: d["fit"][k] for k in ("source", "seconds", "identified", "solver_path")} == \
+        {"source": "run", "seconds": 12.5, "identified": ["C46"], "solver_path": "data"}
+    assert set(d["fit"]["elements"]) == set(mill.element_ids)
+    # the fit restarts from the trained model's gaps of the elements a channel sees
+    measured = {eid for eid, v in d["elements"].items() if v.get("observable")}
+    (start,) = starts[0]
+    assert set(start) == measured and all(0.0 <= g < 0.03 for g in start.values())
     assert d["elements"]["C46"]["source"] == "fit" and d["elements"]["C46"]["state"] == "critical"
 
     def failing_fit(mill_, windows, **kw):

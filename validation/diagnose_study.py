@@ -322,7 +322,38 @@ def score(cases: list[dict[str, Any]], mill) -> dict[str, Any]:
         "bearing_accuracy": (sum(t == d for t, d in bpairs), len(bpairs)),
         "from_fit": (sum(v.get("source") == "fit" for c in cases if c.get("diagnosis")
                          for v in c["diagnosis"]["elements"].values()), len(pairs)),
+        **fit_gap_figures(cases, observable),
     }
+
+
+def fit_gap_figures(cases: list[dict], measured: set[str]) -> dict[str, tuple[int, int]]:
+    """The fit study's figures (:mod:`validation.fit_study`) for the gaps a torque channel
+    measures, from the gaps the fit identified (``source == "fit"``) in the diagnoses.
+
+    ``fit_right``: identified and within :func:`validation.fit_study.tolerance` of the
+    truth, of all measured gaps; ``fit_wrong``: outside it, of those identified;
+    ``fit_covered``: the truth inside the 95 % interval, of those identified.
+    """
+    from validation.fit_study import tolerance
+
+    n = right = wrong = covered = ident = 0
+    for c in cases:
+        if c.get("diagnosis") is None:
+            continue
+        for eid, v in c["diagnosis"]["elements"].items():
+            if eid not in measured:
+                continue
+            n += 1
+            if v.get("source") != "fit":
+                continue
+            truth = float(c["gaps"][eid])
+            ident += 1
+            ok = abs(float(v["gap"]) - truth) <= tolerance(truth)
+            right += ok
+            wrong += not ok
+            lo, hi = v["gap_ci95"]
+            covered += lo <= truth <= hi
+    return {"fit_right": (right, n), "fit_wrong": (wrong, ident), "fit_covered": (covered, ident)}
 
 
 def _fmt(pair: tuple[int, int]) -> str:
@@ -340,7 +371,10 @@ def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
             ("good said worn/critical", lambda f: _fmt(f["false_alarm"])),
             ("bearing state accuracy", lambda f: _fmt(f["bearing_accuracy"])),
             ("element states from the fit", lambda f: _fmt(f["from_fit"])),
-            ("model trained (s)", lambda f: f"{f['train_s']:.0f}"),
+            ("measured gaps fit-identified, right", lambda f: _fmt(f["fit_right"])),
+            ("  identified but wrong", lambda f: _fmt(f["fit_wrong"])),
+            ("  identified, truth in 95 % CI", lambda f: _fmt(f["fit_covered"])),
+            ("model trained (s)", lambda f: f"{f['train_s']:.0f}" if "train_s" in f else "-"),
             ("discrepancy, control (null)", lambda f: f.get("discrepancy control", "not run")),
             ("discrepancy, hidden softening", lambda f: next(
                 (f"{k.split()[-1]}: {v}" for k, v in f.items()
@@ -408,6 +442,19 @@ def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, direct
     return fig, cases
 
 
+def summarise(files: list[str]) -> dict[str, dict[str, Any]]:
+    """The figures per mill of earlier runs' ``--json`` files (recordings only)."""
+    import ident
+
+    by_mill: dict[str, list[dict]] = {}
+    for f in files:
+        for line in Path(f).read_text(encoding="utf-8").splitlines():
+            row = json.loads(line)
+            if line.strip() and "discrepancy_case" not in row:
+                by_mill.setdefault(row["mill"], []).append(row)
+    return {m: score(rows, ident.load_mill(MILLS[m])) for m, rows in by_mill.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m validation.diagnose_study",
                                  description=__doc__.split("\n\n")[0])
@@ -430,7 +477,12 @@ def main(argv: list[str] | None = None) -> int:
                          "recording); --no-fit (the default): the trained model alone")
     ap.add_argument("--json", metavar="FILE", help="one line per recording")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings here")
+    ap.add_argument("--summarise", nargs="+", metavar="FILE",
+                    help="print the table of earlier runs' --json files instead of running")
     args = ap.parse_args(argv)
+    if args.summarise:
+        print_table(summarise(args.summarise))
+        return 0
 
     def log(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)

@@ -193,6 +193,12 @@ def run(args: argparse.Namespace) -> int:
     if fit is not None:
         fit_info["identified"] = [k for k, v in fit["elements"].items()
                                   if v.get("identified")]
+        # the fit's evidence on every element, the gaps it did not identify too
+        fit_info["elements"] = {k: {"gap": v.get("gap"), "gap_ci95": v.get("gap_ci95"),
+                                    "identified": bool(v.get("identified")),
+                                    **({"reason": v["reason"]} if v.get("reason") else {})}
+                                for k, v in fit["elements"].items()}
+        fit_info["solver_path"] = fit.get("solver", {}).get("path")  # the run that won
     out = {"mill": mill.name, "recording": str(rec_path)}
     out.update(diagnosis_json(mill, diag, fit=fit, features=feature_summary(tf, mill=mill),
                               warnings=notes))
