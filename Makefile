@@ -13,7 +13,7 @@ PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | sha256sum | cut -c1-12)
 JOBS   ?= 2
 
-.PHONY: venv demo test test-fast bench sample-data clean constraints validate validate-campaign
+.PHONY: venv demo test test-fast bench sample-data clean constraints validate validate-campaign validate-diagnose
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,6 +44,13 @@ validate: $(STAMP)
 # report and its status JSON (issue 13's figures); out/validate/campaign.
 validate-campaign: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m validation.campaign_study $(CAMPAIGN_ARGS)
+
+# 'ident diagnose' with its fit on plant recordings with wear drawn per element (good, worn
+# or critical) and per bearing (issue 13's element, faulty and bearing figures, and the fit
+# study's figures on those gaps).  About 10 min per recording on one core;
+# DIAGNOSE_ARGS="--mills cold-s5 --per-mill 6 --first-seed 1400" sets the sample.
+validate-diagnose: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m validation.diagnose_study --fit --bars 2 $(DIAGNOSE_ARGS)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks
