@@ -164,3 +164,15 @@ def test_start_from_a_bad_file_exits_2(tmp_path, mill_path, recording, capsys, c
                  str(prev), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0] and "prev.json" in err[0]
+
+
+@pytest.mark.parametrize("content", [None, b"not a joblib file"])
+def test_a_bad_wear_model_exits_2_before_the_fit(tmp_path, mill_path, recording, capsys,
+                                                   content):
+    model = tmp_path / "model.joblib"
+    if content is not None:
+        model.write_bytes(content)
+    assert main(["fit", str(recording.path), "--mill", str(mill_path), "--model", str(model),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model.joblib" in err[0]

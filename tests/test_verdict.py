@@ -283,3 +283,29 @@ def test_cli_diagnose_runs_the_fit_itself(mill, mill_path, worn_case, tmp_path, 
     with pytest.raises(SystemExit) as exc:  # argparse: one or the other
         main(base + ["--no-fit", "--fit", "x.json"])
     assert exc.value.code == 2
+
+
+@pytest.mark.slow
+def test_cli_fit_restarts_from_the_wear_models_gaps(mill, mill_path, worn_case, tmp_path,
+                                                    monkeypatch):
+    """``ident fit --model``: the trained model's gaps of the measured elements become the
+    fit's data start; without --model there is none."""
+    import ident.fit.recording
+    from ident.cli import main
+    from ident.errors import FitError
+
+    rec, model = worn_case
+    seen = []
+
+    def fake_fit(mill_, windows, **kw):
+        seen.append(kw.get("data_starts"))
+        raise FitError("stop here")
+
+    monkeypatch.setattr(ident.fit.recording, "fit_gaps", fake_fit)
+    base = ["fit", str(rec), "--mill", str(mill_path), "--quiet"]
+    assert main(base + ["--model", str(model)]) == 2
+    assert main(base) == 2
+    (start,), none = seen
+    measured = {c.element for c in mill.torque_channels()}
+    assert set(start) == measured and all(0.0 <= g < 0.03 for g in start.values())
+    assert none == ()

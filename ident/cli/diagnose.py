@@ -23,10 +23,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..diagnose import (DiagnosticModel, diagnose_features, diagnosis_json, load_model,
+from ..diagnose import (DiagnosticModel, diagnose_recording, diagnosis_json, load_model,
                         model_cache_path)
 from ..errors import IdentError, ModelArtifactError
-from ..features import feature_summary, recording_features, transient_features
+from ..features import feature_summary
 from .common import add_common, load_mill_arg, require_channels, write_json
 from .train import DEFAULT_SAMPLES, train_and_save
 
@@ -168,12 +168,7 @@ def run(args: argparse.Namespace) -> int:
                          f"diagnosis needs at least one bar")
     model, model_path = (given, str(args.model)) if given is not None else \
         _cached_model(args, mill)
-    tf = transient_features(rec, mill, [s.t_step for s in segments], options=model.options)
-    if len(tf.table) == 0:
-        raise IdentError(f"{rec_path}: the load steps found are too close together or too "
-                         f"close to the recording's ends to analyse")
-    fv = recording_features(tf)
-    diag = diagnose_features(model, fv)
+    diag, tf = diagnose_recording(model, rec, mill, segments)
     notes = [i.message for i in rec.issues]
     fit_info: dict[str, Any] = {"source": "file", "path": str(args.fit)} if fit else \
         {"source": None}

@@ -68,6 +68,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="start at the gaps of an earlier 'ident fit' JSON of this mill (e.g. "
                         "the last recording's) instead of the mill file's: gaps grow slowly, "
                         "and a start near them finds worn gaps the designed ones miss")
+    p.add_argument("--model", metavar="MODEL", default=None,
+                   help="a trained wear model of this mill ('ident train'; 'ident diagnose' "
+                        "caches one): when the fit from the mill file's gaps fails its "
+                        "check, restart from the gaps the model reads from the recording "
+                        "(worn gaps that the designed ones lead astray; 'ident diagnose' "
+                        "does this itself)")
     p.add_argument("--max-transients", type=int, default=None, metavar="N",
                    help="fit at most N transient windows (default: the fit's default, 4)")
     p.add_argument("--window-s", type=float, default=None, metavar="S",
@@ -165,8 +171,19 @@ def run(args: argparse.Namespace) -> int:
         over = {k.split(".")[0]: float(v) for k, v in parse_sets(args.set or []).items()
                 if k.endswith(".gap") and isinstance(v, float)}  # --set wins
         starts = [{**start_from_fit(args.start_from, mill.name, mill.element_ids), **over}]
+    wear_model = None
+    if args.model is not None:  # checked before the (long) read
+        from ..diagnose import load_model
+
+        wear_model = load_model(args.model, mill)
     rec = read_recording(args.recording, mill, warn=False)  # findings go into the JSON
     segments = segment_transients(rec, mill)
+    data_starts: tuple = ()
+    if wear_model is not None and segments:
+        from ..diagnose import diagnose_recording
+
+        data_starts = (diagnose_recording(wear_model, rec, mill, segments,
+                                          explain=False)[0].gap_start(),)
 
     def say(windows: Any) -> None:
         if not args.quiet:
@@ -176,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
 
     result, windows = fit_recording(  # ConvergenceWarning: reported below, once
         rec, mill, segments, windows=wkw, on_windows=say, family=args.family, method=method,
-        n_starts=args.starts, random_state=args.seed, starts=starts,
+        n_starts=args.starts, random_state=args.seed, starts=starts, data_starts=data_starts,
         uncertainty=not args.no_uncertainty, direct=HELD[args.held],
         time_budget_s=args.time_budget, nuisance=args.nuisance, progress=not args.quiet)
     doc = result.to_dict()

@@ -20,7 +20,7 @@ from .explain import describe_feature, explain_decision
 from .library import (Library, LibraryRanges, LibrarySimulator, draw_sample, simulate_library,
                       simulate_sample)
 from .model import (Diagnosis, DiagnosticModel, TargetDiagnosis, diagnose_features,
-                    library_versions, load_model, model_cache_path, save_model, train_model)
+                    diagnose_recording, library_versions, load_model, model_cache_path, save_model, train_model)
 from .states import WearState, bearing_state, element_state
 from .verdict import Verdict, diagnosis_json, fit_verdicts, state_probabilities, verdicts
 
@@ -28,6 +28,6 @@ __all__ = ["RadialLoadCurve", "maintenance_clearance", "radial_load_curve", "sha
            "GapRegressor", "NoveltyDetector", "WearClassifier", "describe_feature",
            "explain_decision", "Library", "LibraryRanges", "LibrarySimulator", "draw_sample", "simulate_library",
            "simulate_sample", "Diagnosis", "DiagnosticModel", "TargetDiagnosis",
-           "diagnose_features", "library_versions", "load_model", "model_cache_path",
+           "diagnose_features", "diagnose_recording", "library_versions", "load_model", "model_cache_path",
            "save_model", "train_model", "WearState", "bearing_state", "element_state",
            "Verdict", "verdicts", "fit_verdicts", "state_probabilities", "diagnosis_json"]

@@ -54,6 +54,7 @@ from .states import STATES
 
 __all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "save_model",
            "load_model", "model_cache_path", "library_versions", "diagnose_features",
+           "diagnose_recording",
            "element_feature_names", "bearing_feature_names", "bearing_context_names",
            "UNCERTAIN_PROBABILITY", "TRAINING_RECIPE"]
 
@@ -561,3 +562,39 @@ def diagnose_features(model: DiagnosticModel, features: pd.Series | Mapping[str,
                                 novelty=nov, explanation=expl)
             (elements if tm.kind == "element" else bearings)[tid] = d
     return Diagnosis(elements=elements, bearings=bearings, warnings=tuple(warnings))
+
+
+def diagnose_recording(model: DiagnosticModel, rec: Any, mill: Mill, segments: Any, *,
+                       explain: bool = True) -> tuple[Diagnosis, Any]:
+    """Diagnose one recording around its load-step transients.
+
+    Parameters
+    ----------
+    model : DiagnosticModel
+    rec : Recording
+    mill : Mill
+    segments : sequence of Segment
+        Its transients (:func:`ident.segment.segment_transients`).
+    explain : bool
+        Attach the features that drove each decision.
+
+    Returns
+    -------
+    diagnosis : Diagnosis
+    features : TransientFeatures
+        :func:`ident.features.transient_features` of the recording.
+
+    Raises
+    ------
+    IdentError
+        No transient far enough from the others and from the recording's ends.
+    """
+    from ..errors import IdentError
+    from ..features import recording_features, transient_features
+
+    tf = transient_features(rec, mill, [s.t_step for s in segments], options=model.options)
+    if len(tf.table) == 0:
+        raise IdentError(f"{getattr(rec, 'path', None) or 'the recording'}: the load steps "
+                         f"found are too close together or too close to the recording's "
+                         f"ends to analyse")
+    return diagnose_features(model, recording_features(tf), explain=explain), tf

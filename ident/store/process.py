@@ -242,15 +242,9 @@ def ensure_model(mill: Mill, *, samples: int = DEFAULT_LIBRARY_SAMPLES, jobs: in
 
 def _model_diagnosis(rec: Any, mill: Mill, segs: tuple, model_file: Path) -> tuple[Any, Any]:
     """The trained model's diagnosis of one recording and its transient features."""
-    from ..diagnose import diagnose_features, load_model
-    from ..features import recording_features, transient_features
+    from ..diagnose import diagnose_recording, load_model
 
-    model = load_model(model_file, mill)
-    tf = transient_features(rec, mill, [s.t_step for s in segs], options=model.options)
-    if len(tf.table) == 0:
-        raise IdentError("the load steps found are too close together or too close to the "
-                         "recording's ends to analyse")
-    return diagnose_features(model, recording_features(tf), explain=False), tf
+    return diagnose_recording(load_model(model_file, mill), rec, mill, segs, explain=False)
 
 
 def _diagnose(rec: Any, mill: Mill, segs: tuple, model_file: Path,
