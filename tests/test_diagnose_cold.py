@@ -124,6 +124,25 @@ def test_study_scores_count_states():
     assert f["faulty_recall"] == (2, 2)
     assert f["false_alarm"] == (1, 2)
     assert f["bearing_accuracy"] == (1, 2)
+    assert f["fit_right"] == (0, 2) and f["fit_wrong"] == (0, 0)
+
+
+def test_study_scores_the_gaps_the_fit_identified():
+    """The fit study's figures on the measured gaps: right within max(10 %, 0.3 mrad), wrong
+    of those identified, covered by the 95 % interval; unmeasured gaps not counted."""
+    def el(gap, lo, hi, source="fit"):
+        return {"state": "worn", "source": source, "gap": gap, "gap_ci95": [lo, hi]}
+
+    cases = [{"gaps": {"C12": 5.0e-3, "C34": 2.0e-3, "C23": 1.0e-3},
+              "diagnosis": {"elements": {"C12": el(5.4e-3, 5.2e-3, 5.6e-3),    # right, missed
+                                         "C34": el(2.5e-3, 1.9e-3, 3.1e-3),    # wrong, covered
+                                         "C23": el(3.0e-3, 2.9e-3, 3.1e-3)}}},  # unmeasured
+             {"gaps": {"C12": 1.0e-3, "C34": 9.0e-3},
+              "diagnosis": {"elements": {"C12": el(1.25e-3, 1.0e-3, 1.5e-3),   # right: 0.3 mrad
+                                         "C34": el(4.0e-3, 0, 1, "diagnosis")}}},
+             {"gaps": {"C12": 1.0e-3}, "diagnosis": None}]
+    f = diagnose_study.fit_gap_figures(cases, {"C12", "C34"})
+    assert f == {"fit_right": (2, 4), "fit_wrong": (1, 3), "fit_covered": (2, 3)}
 
 
 @pytest.fixture(scope="module")

@@ -392,7 +392,8 @@ def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
 
 def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, directory: Path,
                samples: int, jobs: int, discrepancy: bool, drag_fraction: float | None = None,
-               fit: bool = False, log=print) -> tuple[dict, list]:
+               fit: bool = False, log=print, done: dict[int, dict] | None = None,
+               sink=None) -> tuple[dict, list]:
     import ident
 
     mill_path = MILLS[name]
@@ -402,6 +403,9 @@ def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, direct
     log(f"{name}: model {model_path} ({'trained in %.0f s' % train_s if train_s else 'cached'})")
     cases = []
     for k in range(per_mill):
+        if done and first_seed + k in done:  # in the --json file already
+            cases.append(done[first_seed + k])
+            continue
         path, case = make_case(mill, first_seed + k, directory, n_bars=n_bars)
         t0 = time.perf_counter()
         code, data, err = run_cli(["diagnose", str(path), "--mill", str(mill_path),
@@ -413,6 +417,8 @@ def study_mill(name: str, *, per_mill: int, first_seed: int, n_bars: int, direct
         if code != 0:
             case["stderr"] = err.strip()
         cases.append(case)
+        if sink is not None:
+            sink(dict(case, mill=name))
         said = {e: v["state"] for e, v in (data or {}).get("elements", {}).items()}
         log(f"{name} seed {case['seed']} ({case['rate_hz']:.0f} Hz): truth {case['states']} "
             f"{case['bearing_states']} -> {said or err.strip()} "
@@ -475,7 +481,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="diagnose as 'ident diagnose' does by default: run the fit and take "
                          "the state of every gap it identified from that gap (minutes per "
                          "recording); --no-fit (the default): the trained model alone")
-    ap.add_argument("--json", metavar="FILE", help="one line per recording")
+    ap.add_argument("--json", metavar="FILE",
+                    help="one line per recording, written as each is done; a rerun with the "
+                         "same file skips the recordings it holds")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings here")
     ap.add_argument("--summarise", nargs="+", metavar="FILE",
                     help="print the table of earlier runs' --json files instead of running")
@@ -488,6 +496,19 @@ def main(argv: list[str] | None = None) -> int:
         print(msg, file=sys.stderr, flush=True)
 
     figures, rows = {}, []
+    done: dict[str, dict[int, dict]] = {}
+    if args.json and Path(args.json).exists():  # resume: the recordings it holds are done
+        for line in Path(args.json).read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                row = json.loads(line)
+                if "discrepancy_case" not in row and row.get("fit", args.fit) == args.fit:
+                    done.setdefault(row["mill"], {})[int(row["seed"])] = row
+
+    def sink(row: dict) -> None:
+        if args.json:
+            with open(args.json, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(dict(row, fit=args.fit), default=float) + "\n")
+
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(args.keep) if args.keep else Path(tmp)
         d.mkdir(parents=True, exist_ok=True)
@@ -496,13 +517,13 @@ def main(argv: list[str] | None = None) -> int:
                                     n_bars=args.bars, directory=d, samples=args.samples,
                                     jobs=args.jobs, discrepancy=args.discrepancy,
                                     drag_fraction=args.drag_fraction, fit=args.fit,
-                                    log=log)
+                                    log=log, done=done.get(name), sink=sink)
             figures[name] = fig
             rows += [dict(c, mill=name) for c in cases]
-    if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            for r in rows:
-                fh.write(json.dumps(r, default=float) + "\n")
+    if args.json:  # the discrepancy cases (the recordings went in one by one)
+        for r in rows:
+            if "discrepancy_case" in r:
+                sink(r)
     print_table(figures)
     return 0
 
