@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 from ..diagnose import (DiagnosticModel, diagnose_recording, diagnosis_json, load_model,
                         model_cache_path)
@@ -61,7 +61,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_fit(rec: Any, mill: Any, segments: Any, *, budget_s: float,
-            data_starts: Any = (), progress: bool = False
+            data_starts: Sequence[Mapping[str, float]] = (), progress: bool = False
             ) -> tuple[dict[str, Any] | None, str | None]:
     """The recording's fit as ``ident fit`` runs it, for the verdicts.
 

@@ -20,7 +20,8 @@ from .explain import describe_feature, explain_decision
 from .library import (Library, LibraryRanges, LibrarySimulator, draw_sample, simulate_library,
                       simulate_sample)
 from .model import (Diagnosis, DiagnosticModel, TargetDiagnosis, diagnose_features,
-                    diagnose_recording, library_versions, load_model, model_cache_path, save_model, train_model)
+                    diagnose_recording, library_versions, load_model, model_cache_path,
+                    save_model, train_model)
 from .states import WearState, bearing_state, element_state
 from .verdict import Verdict, diagnosis_json, fit_verdicts, state_probabilities, verdicts
 

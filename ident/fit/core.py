@@ -292,8 +292,11 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         fixed_vals[j] = float(v)
     problem = problem.with_free(free)
     start_vecs = _start_vectors(model, starts, n_starts, random_state, min_start_gap)
+    data_vecs = _start_vectors(model, [{k: max(float(v), min_start_gap) for k, v in d.items()}
+                                       for d in data_starts], 1, None,
+                               min_start_gap) if data_starts else []
     for mid, d in lin_model.drag(lin_est.shared).items():  # every start: the baseline's drag
-        for s in start_vecs:
+        for s in (*start_vecs, *data_vecs):
             s[model.shared_names.index(f"{mid}.drag")] = d
     for j, v in fixed_vals.items():
         for s in start_vecs:
@@ -378,9 +381,6 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if not tried(sv):
             restart(sv, len(start_vecs), "baseline", paths[0])
     k_next = len(start_vecs) + 1
-    data_vecs = _start_vectors(model, [{k: max(float(v), min_start_gap) for k, v in d.items()}
-                                       for d in data_starts], 1, None,
-                               min_start_gap) if data_starts else []
 
     def attempt(sv: np.ndarray, tag: str, path: tuple) -> None:
         """A restart from ``sv`` (the fixed parameters put back), unless already tried."""
@@ -409,8 +409,6 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     for sv in data_vecs:  # gaps read from the data by other means
         if not still_above():
             break
-        for mid, d in lin_model.drag(lin_est.shared).items():
-            sv[model.shared_names.index(f"{mid}.drag")] = d
         attempt(sv, "data", held_path)
         resume()
     for _round in range(RESTART_ROUNDS):
