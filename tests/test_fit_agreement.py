@@ -84,3 +84,57 @@ def test_a_channel_passes_at_the_noise_or_with_a_small_model_error():
     assert c.passes("off", EXCESS_AGREED_MAX)
     assert not c.passes("nan")
     assert not c.all_pass
+
+
+def _element(gap: float, half: float, half_noise: float = float("nan")):
+    from ident.fit.result import ElementFit
+    return ElementFit(gap=gap, gap_ci95=(max(gap - half, 0.0), gap + half), gap_se=half / 1.96,
+                      gap_open=0.0, gap_open_ci95=(0.0, 0.0), gap_open_windows=(0.0,),
+                      gap_mm=None, params={}, params_se={}, identifiable=True,
+                      gap_open_identifiable=True, gap_se_noise=half_noise / 1.96)
+
+
+def test_an_interval_wider_than_the_accuracy_bounds_the_gap_but_does_not_identify_it():
+    """4. of the verdict: a gap whose channels fit is identified only when its 95 % interval is
+    within max(10 %, 0.3 mrad) (the accuracy by which a gap counts as right); wider, it is
+    ``bounded`` with that reason; a gap the band check rejects is neither.  Where the channels
+    are at the noise, the interval's noise part and the 2 % floor are judged."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    import ident
+    from ident.fit.verdict import accuracy, verdicts
+    mill = ident.load_mill("data/mills/hsm-f1.toml")
+    measured = tuple(c.element for c in mill.torque_channels())
+    assert measured == ("C12", "C34", "C46", "C57")
+    model = SimpleNamespace(mill=mill, measured=measured)
+    assert accuracy(9e-3) == pytest.approx(9e-4) and accuracy(1e-3) == pytest.approx(3e-4)
+    els = {e.id: _element(1e-3, 2e-4) for e in mill.elements}
+    # C12's channel at the noise: +-20 % in all, +-0.2 mrad from the noise -> identified
+    els["C12"] = _element(9e-3, 1.8e-3, 0.2e-3)
+    # C34's channel keeps a model error (30 times the noise, 1 % of the transient): +-20 %
+    # -> bounded, its noise part notwithstanding
+    els["C34"] = _element(9e-3, 1.8e-3, 0.2e-3)
+    els["C46"] = _element(9e-3, 1.8e-3, 0.2e-3)  # its channel is off: neither
+    els["C57"] = _element(9e-3, 0.85e-3)  # within 10 %: identified
+    info = {e.id: np.eye(len(measured))[measured.index(e.id)] if e.id in measured
+            else np.ones(len(measured)) for e in mill.elements}
+    check = _check({"C12": 1.0, "C34": 30.0, "C46": 50.0, "C57": 30.0},
+                   {"C12": 0.01, "C34": 0.01, "C46": 0.5, "C57": 0.01})
+    out = verdicts(els, model=model, problem=None, check=check, converged=True, status="ok",
+                   information=info, moves=None)
+    assert out["C12"].identified and not out["C12"].bounded and out["C12"].basis
+    assert out["C57"].identified
+    assert not out["C34"].identified and out["C34"].bounded
+    assert "(+-1.80 mrad) is wider than max(10 %, 0.3 mrad)" in out["C34"].reason
+    assert not out["C46"].identified and not out["C46"].bounded
+    assert "transient band" in out["C46"].reason
+    # the noise part alone wider than the accuracy: bounded at the noise too
+    els["C12"] = _element(9e-3, 1.8e-3, 1.2e-3)
+    out = verdicts(els, model=model, problem=None, check=check, converged=True, status="ok",
+                   information=info, moves=None)
+    assert out["C12"].bounded and not out["C12"].identified
+    unconverged = verdicts(els, model=model, problem=None, check=check, converged=False,
+                           status="Maximum_Iterations_Exceeded", information=info, moves=None)
+    assert not any(v.identified or v.bounded for v in unconverged.values())

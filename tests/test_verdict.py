@@ -104,6 +104,27 @@ def test_fit_alone_gives_verdicts_only_where_it_identified(mill):
     assert fit_verdicts(mill, bad) == {}
 
 
+def test_a_bounded_gap_gives_the_state_not_the_value(mill):
+    """A gap the fit bounds (its interval trusted, wider than an identified gap's) decides the
+    state from its interval, says it is not identified and why; a gap neither identified nor
+    bounded leaves the state to the model."""
+    fit = _fit(mill)
+    why = "its 95 % interval (+-1.80 mrad) is wider than max(10 %, 0.3 mrad)"
+    fit["elements"]["C23"] = {"gap": 9.1e-3, "gap_ci95": [7.3e-3, 10.9e-3], "identified": False,
+                              "bounded": True, "reason": why}
+    els, _ = verdicts(mill, _diagnosis(mill, "good"), fit=fit)
+    c23, e = els["C23"], mill.element("C23")
+    assert e.gap_worn < 7.3e-3 and e.gap_critical < 9.1e-3  # the case is as meant
+    assert c23.source == "fit" and not c23.identified and c23.reason == why
+    assert c23.state == "critical" and c23.probabilities == pytest.approx(
+        state_probabilities(9.1e-3, (7.3e-3, 10.9e-3), (e.gap_worn, e.gap_critical)))
+    assert els["C46"].source == "diagnosis"  # neither: the model's
+    block = diagnosis_json(mill, _diagnosis(mill, "good"), fit=fit)["elements"]["C23"]
+    assert block["source"] == "fit" and block["identified"] is False and block["reason"] == why
+    fit["elements"]["C23"]["bounded"] = False
+    assert verdicts(mill, _diagnosis(mill, "good"), fit=fit)[0]["C23"].source == "diagnosis"
+
+
 def test_model_alone(mill):
     els, brs = verdicts(mill, _diagnosis(mill, "worn"))
     assert all(v.source == "diagnosis" and v.state == "worn" and v.reason == ""
@@ -211,9 +232,9 @@ def test_cli_diagnose_takes_the_fits_identified_gap(mill, mill_path, worn_case, 
         {"source": "file", "path": str(fit), "identified": ["C46"]}
     # the fit's evidence on every element, what it did not identify too
     assert fit_block["elements"]["C46"] == {"gap": 0.0099, "gap_ci95": [0.0095, 0.0103],
-                                            "identified": True}
+                                            "identified": True, "bounded": False}
     assert fit_block["elements"]["C23"] == {"gap": 0.0123, "gap_ci95": [0.0, 0.02],
-                                            "identified": False,
+                                            "identified": False, "bounded": False,
                                             "reason": "interval wider than the gap"}
 
 

@@ -111,6 +111,7 @@ def _fit_row(res: Any, mill: Any, gaps: dict[str, float], start: str, seconds: f
     for eid, el in res.elements.items():
         els[eid] = {"truth": gaps.get(eid, 0.0), "gap": el.gap, "ci": list(el.gap_ci95),
                     "identifiable": el.identifiable, "identified": el.identified,
+                    "bounded": el.bounded,
                     "reason": el.reason, "measured": eid in measured,
                     "window_z": el.window_z, "se": el.gap_se, "seen_by": list(el.seen_by),
                     "window_moves": list(el.window_moves), "basis": el.basis,

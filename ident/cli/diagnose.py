@@ -191,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
         # the fit's evidence on every element, the gaps it did not identify too
         fit_info["elements"] = {k: {"gap": v.get("gap"), "gap_ci95": v.get("gap_ci95"),
                                     "identified": bool(v.get("identified")),
+                                    "bounded": bool(v.get("bounded")),
                                     **({"reason": v["reason"]} if v.get("reason") else {})}
                                 for k, v in fit["elements"].items()}
         fit_info["solver_path"] = fit.get("solver", {}).get("path")  # the run that won

@@ -9,12 +9,16 @@ evidence; ``ident diagnose`` and the campaign (:mod:`ident.store.process`) both
 call :func:`diagnosis_json`.
 
 * An element whose gap the fit identified (``identified: true`` in the fit
-  JSON) takes its state from that gap against the element's ``gap_worn`` and
-  ``gap_critical`` (:func:`~ident.diagnose.states.element_state`), and the
-  state's probability from the gap's 95 % interval against those limits: the
-  interval is read as a split normal around the estimate (each side's standard
-  deviation its half-width / 1.96) and the probability of a state is that
-  distribution's mass between the state's limits.  ``source: "fit"``.
+  JSON), or whose interval it trusts though it is wider than an identified
+  gap's (``bounded: true``, :mod:`ident.fit.verdict`), takes its state from that
+  gap against the element's ``gap_worn`` and ``gap_critical``
+  (:func:`~ident.diagnose.states.element_state`), and the state's probability
+  from the gap's 95 % interval against those limits: the interval is read as a
+  split normal around the estimate (each side's standard deviation its
+  half-width / 1.96) and the probability of a state is that distribution's mass
+  between the state's limits.  ``source: "fit"``; ``identified`` says which of
+  the two, and a bounded gap carries the fit's ``reason``.  A state needs less
+  than a gap's value: 9.1 mrad with +-20 % is critical or at least worn.
 * Any other element takes the trained diagnosis' state and probability (the
   regressor's interval blended with the classifier, :mod:`ident.diagnose.model`),
   ``source: "diagnosis"``, with the fit's ``reason`` when a fit did not
@@ -64,9 +68,13 @@ class Verdict:
         Its 95 % interval (NaN when not known).
     source : {'fit', 'diagnosis'}
     reason : str
-        Why an element's verdict is not the fit's (the fit's own reason), else "".
+        Why an element's verdict is not the fit's, or why the fit's gap is only
+        bounded (the fit's own reason), else "".
     diagnosis : TargetDiagnosis or None
         The trained diagnosis of the same target, also where the fit decided.
+    identified : bool
+        ``source`` is the fit and it identified the gap (False for a gap the
+        fit only bounded, and for the diagnosis).
     """
 
     kind: Literal["element", "bearing"]
@@ -79,6 +87,7 @@ class Verdict:
     source: Literal["fit", "diagnosis"]
     reason: str = ""
     diagnosis: TargetDiagnosis | None = field(default=None, compare=False)
+    identified: bool = False
 
     @property
     def uncertain(self) -> bool:
@@ -144,18 +153,22 @@ def _num(x: Any) -> float:
 
 def _fit_verdict(e: Element, el: Mapping[str, Any]) -> Verdict | None:
     gap = _num(el.get("gap"))
-    if not el.get("identified") or not math.isfinite(gap):
+    identified = bool(el.get("identified"))
+    if not (identified or el.get("bounded")) or not math.isfinite(gap):
         return None
     ci = el.get("gap_ci95") or [math.nan, math.nan]
     ci95 = (_num(ci[0]), _num(ci[1]))
     probs = state_probabilities(gap, ci95, (e.gap_worn, e.gap_critical))
     state = element_state(e, gap).value
     return Verdict(kind="element", target=e.id, state=state, probability=probs[state],
-                   probabilities=probs, value=gap, ci95=ci95, source="fit")
+                   probabilities=probs, value=gap, ci95=ci95, source="fit",
+                   reason="" if identified else str(el.get("reason") or ""),
+                   identified=identified)
 
 
 def fit_verdicts(mill: Mill, fit: Mapping[str, Any] | None) -> dict[str, Verdict]:
-    """Verdicts of the elements the fit identified (cli.md ``fit`` JSON), by element id."""
+    """Verdicts of the elements the fit identified or bounded (cli.md ``fit`` JSON), by
+    element id."""
     els = (fit or {}).get("elements") or {}
     out = {}
     for e in mill.elements:
@@ -223,7 +236,9 @@ def _element_block(e: Element, v: Verdict) -> dict[str, Any]:
         out["gap_mm"] = mm
     d = v.diagnosis
     if v.source == "fit":
-        out["identified"] = True
+        out["identified"] = v.identified
+        if v.reason:
+            out["reason"] = v.reason
         if d is not None:  # what the trained model said, for comparison
             out["diagnosis"] = {"state": d.state, "probability": d.probability, "gap": d.size,
                                 "gap_ci95": list(d.interval)}

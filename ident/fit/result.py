@@ -75,6 +75,12 @@ class ElementFit:
         The fit's verdict (:mod:`ident.fit.verdict`): identifiable, the solver
         converged, the channels that see it fit down to the noise in the
         transient band, and the windows agree on it.
+    bounded : bool
+        The verdict trusts the gap's interval (the solver converged, the gap is
+        identifiable, the channels that see it fit), but the interval is wider
+        than the accuracy of an identified gap (:func:`ident.fit.verdict.accuracy`):
+        a wear state may be read from the interval, the gap's value is not
+        identified.  False when identified.
     reason : str
         Why not, in one line ("" when identified; ``identifiable`` false
         carries its own reason too).
@@ -104,6 +110,7 @@ class ElementFit:
     identifiable: bool
     gap_open_identifiable: bool
     identified: bool = False
+    bounded: bool = False
     reason: str = ""
     seen_by: tuple[str, ...] = ()
     window_z: float = math.nan
@@ -127,6 +134,7 @@ class ElementFit:
             "identifiable": bool(self.identifiable),
             "gap_open_identifiable": bool(self.gap_open_identifiable),
             "identified": bool(self.identified),
+            "bounded": bool(self.bounded),
             **({"basis": self.basis} if self.identified else {"reason": self.reason}),
             "seen_by": list(self.seen_by),
             "window_z": _f(self.window_z),
