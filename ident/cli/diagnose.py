@@ -4,7 +4,8 @@ Reads the recording, finds its load-step transients (``ident.segment``),
 extracts the natural-frequency amplitudes and phases against the linear
 baseline and the other transient features (``ident.features``) and applies
 the mill's trained model (``ident.diagnose``).  An element whose gap the
-recording's fit identified takes its state from that gap, the most accurate
+recording's fit identified (or bounded: an interval the fit trusts, wider than an
+identified gap's) takes its state from that gap and interval, the most accurate
 evidence (:mod:`ident.diagnose.verdict`, as the campaign does).  The fit is the
 one given by ``--fit FIT.json`` (``ident fit --out``); without it, diagnose runs
 the fit itself as ``ident fit`` would (bounded by ``--fit-budget``, default the
@@ -45,7 +46,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     how = p.add_mutually_exclusive_group()
     how.add_argument("--fit", metavar="FIT.json",
                      help="the recording's fit (ident fit --out): an element whose gap it "
-                          "identified takes its state from that gap (source 'fit'); "
+                          "identified or bounded takes its state from that gap and its "
+                          "interval (source 'fit'); "
                           "without it the fit is run here")
     how.add_argument("--no-fit", action="store_true",
                      help="do not run the fit: the trained model decides every state "
