@@ -292,6 +292,38 @@ def test_rejected_fits_are_left_out_of_the_trend(tmp_path, mill):
     assert "30 of 54 element fits did not identify their gap" in text
 
 
+def test_bounded_fits_give_the_trend_where_no_fit_identified_the_gap(tmp_path, mill,
+                                                                    monkeypatch):
+    """No fit identifies C46; two bounded it (their verdicts' source is the fit): those two
+    are in the trend with the diagnosis' other verdicts and not also hollow points, the
+    third unidentified fit is; the panel says so."""
+    import sqlalchemy as sa
+
+    from ident.store import schema as S
+
+    for i in range(3):
+        write_double_recording(tmp_path / "c" / f"r{i}.mcap", day=5 * i, seed=i,
+                               identified=["C12", "C57"])
+    url = f"sqlite:///{tmp_path}/r.db"
+    run_campaign(tmp_path / "c", mill, url, workers=0, process=double_process, progress=False)
+    d, r = S.diagnoses.c, S.recordings.c
+    with sa.create_engine(url).begin() as c:
+        first_two = c.execute(sa.select(r.id).order_by(r.t0_ns).limit(2)).scalars().all()
+        c.execute(S.diagnoses.update().where((d.target == "C46")
+                                             & d.recording_pk.in_(first_two))
+                  .values(source="fit"))
+    import ident.report.build as B
+    drawn = []
+    monkeypatch.setattr(B.F, "gap_trends", lambda panels, **kw: drawn.extend(panels) or "")
+    sec = analyse_mill("hsm-f1", load_results(url), figures=True)
+    c46 = next(x for x in sec.assessments if x.id == "C46")
+    assert c46.source == "diagnosis" and c46.n_identified == 0 and c46.n == 3
+    assert c46.n_rejected == 1  # the third: not bounded, hollow
+    panel = next(p for p in drawn if p.title.startswith("C46"))
+    assert panel.note.startswith("no fit identified the gap; 2 fit(s) bounded it")
+    assert panel.rejected_t.size == 1
+
+
 def test_unknown_only_without_evidence(tmp_path, mill):
     """C23's fits are all rejected and no diagnosis is stored: unknown, the others are not."""
     for i in range(3):

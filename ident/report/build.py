@@ -212,7 +212,9 @@ class Evidence:
 
     ``t`` days since the report's reference time, ``y`` the value and ``lo, hi``
     its 95 % interval (NaN where unknown); ``rejected_*`` the fits that did not
-    identify the gap (drawn, never trended).
+    identify the gap (drawn, never trended); ``n_bounded`` of the verdicts, those
+    whose gap and interval came from a fit that bounded the gap (the fit's
+    interval wider than an identified gap's, :mod:`ident.fit.verdict`).
     """
 
     t: np.ndarray
@@ -221,6 +223,7 @@ class Evidence:
     hi: np.ndarray
     source: str
     n_identified: int = 0
+    n_bounded: int = 0
     rejected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rejected_y: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -284,7 +287,10 @@ def _assess(kind: str, id_: str, label: str, unit: str, ev: Evidence, worn: floa
                    critical_reached=_first_at_or_above(days, y, critical, noisy_lo))
     title = f"{id_}" + (f" — {label}" if label else "") + f"  [{status.upper()}]"
     note = ""
-    if kind == "element" and ev.source == "diagnosis" and ok.any():
+    if kind == "element" and ev.source == "diagnosis" and ok.any() and ev.n_bounded:
+        note = (f"no fit identified the gap; {ev.n_bounded} fit(s) bounded it (95 % interval "
+                "wider than an identified gap's), the wear diagnosis gives the rest")
+    elif kind == "element" and ev.source == "diagnosis" and ok.any():
         note = "gap regressed by the wear diagnosis (no fit identified it)"
     elif not ok.any() and n_rej:
         note = "no fit identified the gap: hollow points for reference only"
@@ -327,9 +333,14 @@ def _element_evidence(er: pd.DataFrame, diag: pd.DataFrame, eid: str, t_ref: int
                         n_identified=len(good), rejected_t=rej_t, rejected_y=rej_y)
     v = diag[(diag["kind"] == "element") & (diag["target"] == eid)
              & diag["gap"].notna()].sort_values("t0_ns")
+    # a verdict from a fit that bounded the gap carries that fit's gap: it is in the
+    # trend, not also a hollow point
+    bounded = v["source"].eq("fit") if "source" in v else pd.Series(False, index=v.index)
+    keep = ~rejected["recording_pk"].isin(v.loc[bounded, "recording_pk"])
     return Evidence(t=_days(v["t0_ns"], t_ref), y=v["gap"].to_numpy(float) * f,
                     lo=_col(v, "value_ci_lo") * f, hi=_col(v, "value_ci_hi") * f,
-                    source="diagnosis", rejected_t=rej_t, rejected_y=rej_y)
+                    source="diagnosis", n_bounded=int(bounded.sum()),
+                    rejected_t=rej_t[keep.to_numpy()], rejected_y=rej_y[keep.to_numpy()])
 
 
 def _bearing_evidence(diag: pd.DataFrame, bid: str, t_ref: int) -> Evidence:
