@@ -57,8 +57,8 @@ from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
 from .uncertainty import Z95, Covariance, channel_information, collocation_sensitivity, \
     covariance, model_error_se, noise_floor, shooting_sensitivity, window_influence
-from .verdict import agree_tolerance, agreement, band_check, confirmation_start, seen_channels, verdicts, \
-    window_residuals
+from .verdict import agree_tolerance, agreement, band_check, confirmation_start, \
+    identifiable_width, seen_channels, verdicts, window_residuals
 from .windows import FitWindow
 
 __all__ = ["fit_gaps", "assess", "Assessment"]
@@ -1002,14 +1002,14 @@ def _element_report(model: FitModel, problem: Problem, est: Estimate, cov: Covar
         depth = _traversal_depth(model, est, j, gap, contact)
         traversed = _traversed(depth, width, se_noise)
         identifiable = bool(cov is not None and np.isfinite(se) and traversed
-                            and half <= max(0.25 * abs(gap), 5e-4))
+                            and half <= identifiable_width(gap))
         why = _why_not_identifiable(cov, fixed, se, traversed, half, gap)
         if cov is not None and not traversed and not fixed:
             ci = (float(np.clip(gap - half if np.isfinite(half) else 0.0, 0.0, gap)),
                   float(model.gap_max))
         engaged = _engages(model, est, j, contact, first, width)
         open_ident = bool(cov is not None and np.isfinite(open_se[first]) and engaged
-                          and Z95 * open_se[first] <= max(0.25 * abs(gap), 5e-4))
+                          and Z95 * open_se[first] <= identifiable_width(gap))
         if cov is not None and not engaged:
             go_ci = (0.0, float(max(gap, 0.0)))
         if cov is not None and not identifiable and not fixed:
@@ -1042,7 +1042,7 @@ def _why_not_identifiable(cov: Covariance | None, fixed: bool, se: float, traver
     if not traversed:
         return ("no window drives it across its gap (drive and back flank): the data bound "
                 "it from below only")
-    if half > max(0.25 * abs(gap), 5e-4):
+    if half > identifiable_width(gap):
         return (f"its 95 % interval (+-{1e3 * half:.2f} mrad) is wider than max(25 %, "
                 "0.5 mrad)")
     return ""

@@ -63,8 +63,8 @@ from .noise import BAND_RATIO_MAX, Bands, NoiseSpectrum, band_ratio, bands, nois
 from .uncertainty import MODEL_ERROR_FLOOR, Z95
 
 __all__ = ["BandCheck", "band_check", "verdicts", "seen_channels", "SEEN_SHARE", "EXCESS_MAX",
-           "EXCESS_AGREED_MAX", "window_residuals", "accuracy", "agree_tolerance", "agreement",
-           "confirmation_start"]
+           "EXCESS_AGREED_MAX", "window_residuals", "identifiable_width", "accuracy",
+           "agree_tolerance", "agreement", "confirmation_start"]
 
 #: Largest change of a gap, in standard deviations of the change, when one
 #: window is left out (nested estimators: N(0, 1) for windows that agree; 4 keeps
@@ -95,6 +95,10 @@ EXCESS_MAX = 0.06
 #: transient's power unexplained.  Above it the model misses too much for any
 #: agreement of starts to mean the gap is right.
 EXCESS_AGREED_MAX = 0.10
+
+#: Relative and absolute parts of :func:`identifiable_width`.
+IDENTIFIABLE_REL = 0.25
+IDENTIFIABLE_ABS = 5e-4
 
 #: Relative and absolute parts of :func:`accuracy`: the issue's "right" (a gap within
 #: ``max(10 %, 0.3 mrad)`` of the truth), not a value fitted to any data.
@@ -179,6 +183,12 @@ class BandCheck:
     @property
     def all_at_noise(self) -> bool:
         return all(self.at_noise(c) for c in self.ratio)
+
+
+def identifiable_width(gap: float) -> float:
+    """Largest half-width of an identifiable gap's 95 % interval, rad: ``max(25 %, 0.5 mrad)``
+    of the gap (2. of the module docstring)."""
+    return max(IDENTIFIABLE_REL * abs(gap), IDENTIFIABLE_ABS)
 
 
 def accuracy(gap: float) -> float:
@@ -379,7 +389,7 @@ def verdicts(elements: Mapping[str, Any], *, model: Any, problem: Any, check: Ba
                           "pin it down")
             elif WINDOWS_GATE and moves is not None and eid in moves:
                 d, z = moves[eid]
-                tol = max(0.25 * abs(el.gap), 5e-4)
+                tol = identifiable_width(el.gap)
                 bad = np.isfinite(d) & np.isfinite(z) & (np.abs(d) > tol) & (np.abs(z) > Z_WINDOWS)
                 if bad.any():
                     k = int(np.argmax(np.where(bad, np.abs(z), -1.0)))
