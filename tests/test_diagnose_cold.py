@@ -130,8 +130,9 @@ def test_study_scores_count_states():
 def test_study_scores_the_gaps_the_fit_identified():
     """The fit study's figures on the measured gaps: right within max(10 %, 0.3 mrad), wrong
     of those identified, covered by the 95 % interval; unmeasured gaps not counted."""
-    def el(gap, lo, hi, source="fit"):
-        return {"state": "worn", "source": source, "gap": gap, "gap_ci95": [lo, hi]}
+    def el(gap, lo, hi, source="fit", identified=True):
+        return {"state": "worn", "source": source, "gap": gap, "gap_ci95": [lo, hi],
+                "identified": identified}
 
     cases = [{"gaps": {"C12": 5.0e-3, "C34": 2.0e-3, "C23": 1.0e-3},
               "diagnosis": {"elements": {"C12": el(5.4e-3, 5.2e-3, 5.6e-3),    # right, missed
@@ -140,9 +141,12 @@ def test_study_scores_the_gaps_the_fit_identified():
              {"gaps": {"C12": 1.0e-3, "C34": 9.0e-3},
               "diagnosis": {"elements": {"C12": el(1.25e-3, 1.0e-3, 1.5e-3),   # right: 0.3 mrad
                                          "C34": el(4.0e-3, 0, 1, "diagnosis")}}},
+             {"gaps": {"C12": 1.0e-3, "C34": 3.0e-3},  # bounded: a state, no value
+              "diagnosis": {"elements": {"C34": el(3.0e-3, 2.5e-3, 3.5e-3, identified=False)}}},
              {"gaps": {"C12": 1.0e-3}, "diagnosis": None}]
     f = diagnose_study.fit_gap_figures(cases, {"C12", "C34"})
-    assert f == {"fit_right": (2, 4), "fit_wrong": (1, 3), "fit_covered": (2, 3)}
+    assert f == {"fit_right": (2, 5), "fit_wrong": (1, 3), "fit_covered": (2, 3),
+                 "fit_bounded": (1, 5)}
 
 
 @pytest.fixture(scope="module")

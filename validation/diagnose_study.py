@@ -357,15 +357,19 @@ def score(cases: list[dict[str, Any]], mill) -> dict[str, Any]:
 
 def fit_gap_figures(cases: list[dict], measured: set[str]) -> dict[str, tuple[int, int]]:
     """The fit study's figures (:mod:`validation.fit_study`) for the gaps a torque channel
-    measures, from the gaps the fit identified (``source == "fit"``) in the diagnoses.
+    measures, from the gaps the fit identified (``source == "fit"`` and ``identified``; a
+    run before the fit's gaps could be ``bounded`` wrote only identified ones with source
+    fit) in the diagnoses.
 
     ``fit_right``: identified and within :func:`validation.fit_study.tolerance` of the
     truth, of all measured gaps; ``fit_wrong``: outside it, of those identified;
-    ``fit_covered``: the truth inside the 95 % interval, of those identified.
+    ``fit_covered``: the truth inside the 95 % interval, of those identified;
+    ``fit_bounded``: the fit bounded the gap (its state came from the fit's interval, its
+    value is not identified), of all measured gaps.
     """
     from validation.fit_study import tolerance
 
-    n = right = wrong = covered = ident = 0
+    n = right = wrong = covered = ident = bounded = 0
     for c in cases:
         if c.get("diagnosis") is None:
             continue
@@ -375,6 +379,9 @@ def fit_gap_figures(cases: list[dict], measured: set[str]) -> dict[str, tuple[in
             n += 1
             if v.get("source") != "fit":
                 continue
+            if not v.get("identified", True):
+                bounded += 1
+                continue
             truth = float(c["gaps"][eid])
             ident += 1
             ok = abs(float(v["gap"]) - truth) <= tolerance(truth)
@@ -382,7 +389,8 @@ def fit_gap_figures(cases: list[dict], measured: set[str]) -> dict[str, tuple[in
             wrong += not ok
             lo, hi = v["gap_ci95"]
             covered += lo <= truth <= hi
-    return {"fit_right": (right, n), "fit_wrong": (wrong, ident), "fit_covered": (covered, ident)}
+    return {"fit_right": (right, n), "fit_wrong": (wrong, ident), "fit_covered": (covered, ident),
+            "fit_bounded": (bounded, n)}
 
 
 def _fmt(pair: tuple[int, int]) -> str:
@@ -403,6 +411,8 @@ def print_table(figures: dict[str, dict[str, Any]], file=sys.stdout) -> None:
             ("measured gaps fit-identified, right", lambda f: _fmt(f["fit_right"])),
             ("  identified but wrong", lambda f: _fmt(f["fit_wrong"])),
             ("  identified, truth in 95 % CI", lambda f: _fmt(f["fit_covered"])),
+            ("measured gaps fit-bounded (state only)",
+             lambda f: _fmt(f.get("fit_bounded", (0, 0)))),
             ("model trained (s)", lambda f: f"{f['train_s']:.0f}" if "train_s" in f else "-"),
             ("discrepancy, control (null)", lambda f: f.get("discrepancy control", "not run")),
             ("discrepancy, hidden softening", lambda f: next(
