@@ -104,6 +104,36 @@ the model says good) and C23 (1401); in 1402 the identified C23 came out 3.98 mr
 against 4.79, just under the worn limit, and in 1400 C34 3.68 [2.93, 4.44] against 2.82
 was accepted wrong.
 
+Measured again (2026-12-05, code d7311bf: an identified gap's 95 % interval must be
+within max(10 %, 0.3 mrad), the accuracy by which it counts as right; a wider interval
+the fit trusts leaves the gap ``bounded``, and its state still comes from the fit),
+fresh seeds 1500-1505 (hsm-f1 1500-1503), the fit-gap figures scored as above with the
+bounded gaps apart (:func:`fit_gap_figures` before this run counted them identified):
+
+=====================================  ============  ============
+seeds                                  1500-1503     1500-1505
+mill                                   hsm-f1        cold-s5
+=====================================  ============  ============
+element states right                   21/24         21/24
+worn+critical said not good            3/5           7/9
+good said worn/critical                0/19          0/15
+bearing states right                   7/8           5/6
+measured gaps identified and right     9/16          9/18
+measured gaps identified but wrong     0/9           0/9
+identified, truth in 95 % interval     9/9           8/9
+measured gaps bounded (state only)     3/16          1/18
+=====================================  ============  ============
+
+The bounded ones: hsm-f1 1501's C12, C34 and C57 (within 0.5-3.5 % of the truth, with
+intervals of +-12.5-13 %), and cold-s5 1505's C45, 4.31 [3.36, 5.27] mrad against 6.60
+(state worn, right).  Under the earlier 25 % rule all four would have been accepted
+(identified and right 21/34 instead of 18/34, wrong 1/22 instead of 0/18).  All the other
+misses are in the four recordings where the fit identified nothing (hsm-f1 1503,
+cold-s5 1503-1505): two or three gaps of 6-11 mrad each, the series pair C12/C23 split
+wrong or the large gaps moved along the chain, and the 600 s budget spent.  Over the
+three runs (32 recordings), the fit gave no state in 12; 8 of them had two or more gaps
+above 5 mrad, and of the 13 recordings with two or more such gaps, 8 got none.
+
 Measured (2026-12-04, ``--bars 2 --no-fit``, 300-sample models): the library of
 training recipe 1 (no drag, 6-8 bars, 10-40 ms ramps) and of recipe 2 (an idle drag in
 half the samples spread over the masses uniformly, 2-8 bars, 5-80 ms ramps;
