@@ -138,3 +138,18 @@ def test_an_interval_wider_than_the_accuracy_bounds_the_gap_but_does_not_identif
     unconverged = verdicts(els, model=model, problem=None, check=check, converged=False,
                            status="Maximum_Iterations_Exceeded", information=info, moves=None)
     assert not any(v.identified or v.bounded for v in unconverged.values())
+
+
+def test_the_summary_line_says_bounded():
+    """``ident fit``'s stderr line per element names a bounded gap as such, still 'not identified'."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from ident.cli.fit import element_summary
+    els = {"C12": replace(_element(9e-3, 1.8e-3), bounded=True, reason="wide"),
+           "C34": replace(_element(2e-3, 1e-4), identified=True),
+           "C46": replace(_element(2e-3, 1e-4), reason="off")}
+    lines = element_summary(SimpleNamespace(elements=els))
+    assert lines[0] == "C12 gap 9.00 mrad [7.20, 10.80] bounded, not identified: wide"
+    assert lines[1].endswith("identified") and "not" not in lines[1]
+    assert lines[2].endswith("not identified: off") and "bounded" not in lines[2]

@@ -213,11 +213,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def element_summary(result: Any) -> list[str]:
-    """One line per element: its gap, interval and verdict (with the reason when not identified)."""
+    """One line per element: its gap, interval and verdict (with the reason when not identified;
+    a gap the fit bounds says so)."""
     out = []
     for eid, el in result.elements.items():
         lo, hi = el.gap_ci95
         head = f"{eid} gap {1e3 * el.gap:.2f} mrad [{1e3 * lo:.2f}, {1e3 * hi:.2f}]"
         out.append(f"{head} identified" if el.identified else
+                   f"{head} bounded, not identified: {el.reason}" if el.bounded else
                    f"{head} not identified: {el.reason}")
     return out
