@@ -73,8 +73,9 @@ class ElementFit:
     gap_open_identifiable : bool
     identified : bool
         The fit's verdict (:mod:`ident.fit.verdict`): identifiable, the solver
-        converged, the channels that see it fit down to the noise in the
-        transient band, and the windows agree on it.
+        converged, the channels that see it fit (at the noise in the transient
+        band, or a small model error there), and its 95 % interval is within
+        ``max(10 %, 0.3 mrad)``, the accuracy by which a gap counts as right.
     bounded : bool
         The verdict trusts the gap's interval (the solver converged, the gap is
         identifiable, the channels that see it fit), but the interval is wider
