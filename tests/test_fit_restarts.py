@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from ident import load_mill
 from ident.fit.core import _repaired_start, _shared_from_gaps
 from ident.fit.model import build_fit_model
 from ident.fit.problem import Estimate
@@ -138,6 +142,48 @@ def test_a_run_stopped_at_its_bound_below_every_converged_one_is_resumed():
     assert _resume_candidate([_run(22.7, True),
                               _run(22.7 * (1 - 0.5 * RESTART_GAIN), False)]) is None
     assert _resume_candidate([_run(195.3, False), _run(22.7, True)]) is None
-    # nothing converged: the fit reports no convergence rather than a resumed guess
-    assert _resume_candidate([_run(3.0, False)]) is None
+    # nothing converged (plant cold-s5 8100, fit_study): the lowest run stopped at a bound
+    # is solved on; the verdict then says whether that converged
+    alone = _run(3.0, False)
+    assert _resume_candidate([_run(4.0, False), alone]) is alone
     assert _resume_candidate([_run(float("inf"), False), _run(5.0, True)]) is None
+    # a run that failed otherwise (not at a bound) is not resumed
+    failed = _run(1.0, False)
+    failed = failed[:3] + (replace(failed[3], status="Restoration_Failed"),) + failed[4:]
+    assert _resume_candidate([_run(22.7, True), failed]) is None
+
+
+def _stopped(model, gaps: dict, cost: float, *, status: str = "Maximum_Iterations_Exceeded",
+             infeasibility: float = 1e-9) -> tuple:
+    from ident.fit.core import _shared_from_gaps
+    from ident.fit.problem import Estimate, SolveInfo, StageInfo
+
+    est = Estimate(shared=_shared_from_gaps(model, gaps), window=np.zeros((1, 1)),
+                   x0=np.zeros((1, 1)))
+    stage = StageInfo(width=3e-5, status=status, success=False, iterations=300, seconds=1.0,
+                      cost=cost, infeasibility=infeasibility)
+    return est, SolveInfo(method="collocation", status=status, success=False, iterations=300,
+                          seconds=1.0, cost=cost, stages=(stage,))
+
+
+def test_a_resumed_run_that_stops_where_it_began_is_stationary():
+    """plant cold-s5 8100 (fit_study): 300 iterations ran out at cost 1.4961, resumed they
+    ran out again at 1.4949, feasible, the gaps 0.01 mrad from where they began."""
+    from ident.fit.core import STALL_FRACTION, _stalled
+    from ident.fit.model import build_fit_model
+    from ident.fit.verdict import accuracy
+
+    mill = load_mill(Path(__file__).resolve().parents[1] / "data" / "mills" / "cold-s5.toml")
+    model = build_fit_model(mill, family="g1")
+    gaps = {"C12": 1.19e-3, "C23": 1.24e-3, "C34": 0.03e-3, "C45": 2.50e-3}
+    before = _stopped(model, gaps, 1.4961)
+    near = {**gaps, "C45": 2.49e-3}
+    assert _stalled(model, *before, *_stopped(model, near, 1.4949))
+    # moved more than STALL_FRACTION of the accuracy: still descending
+    far = {**gaps, "C45": gaps["C45"] - 1.5 * STALL_FRACTION * accuracy(gaps["C45"])}
+    assert not _stalled(model, *before, *_stopped(model, far, 1.4949))
+    # infeasible at the end, higher in cost, or converged/failed otherwise: not a stall
+    assert not _stalled(model, *before, *_stopped(model, near, 1.4949, infeasibility=2e-3))
+    assert not _stalled(model, *before, *_stopped(model, near, 1.6))
+    assert not _stalled(model, *before, *_stopped(model, near, 1.4949,
+                                                  status="Restoration_Failed"))

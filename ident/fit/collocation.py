@@ -340,7 +340,8 @@ class Collocation:
             Vn = np.asarray(sol["x"]).ravel()
             stages.append(StageInfo(width=float(w) if m.family is Family.G1 else None,
                                     status=status, success=success, iterations=it,
-                                    seconds=time.perf_counter() - ts, cost=cost))
+                                    seconds=time.perf_counter() - ts, cost=cost,
+                                    infeasibility=_last_inf_pr(st)))
             if not np.all(np.isfinite(Vn)):
                 success, status = False, "Invalid_Number_Detected"
                 break
@@ -428,6 +429,12 @@ STATIONARY_REL = 1e-5
 
 #: Largest constraint violation (collocation defects, scaled) of a stationary end.
 STATIONARY_INF_PR = 1e-6
+
+
+def _last_inf_pr(stats: Mapping[str, Any]) -> float:
+    """The constraint violation of an IPOPT call's last iterate (NaN if not recorded)."""
+    pr = list((stats.get("iterations") or {}).get("inf_pr", []))
+    return float(pr[-1]) if pr else math.nan
 
 
 def stationary(stats: Mapping[str, Any]) -> bool:

@@ -8,6 +8,8 @@ channel's standard deviation over all windows, so every torque counts alike.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -140,7 +142,12 @@ class Estimate:
 
 @dataclass(frozen=True)
 class StageInfo:
-    """One continuation stage of a solve."""
+    """One continuation stage of a solve.
+
+    ``infeasibility`` is the largest constraint violation at the stage's end
+    (IPOPT's ``inf_pr``, scaled collocation defects; 0 for single shooting,
+    NaN where the solver did not say).
+    """
 
     width: float | None
     status: str
@@ -148,6 +155,7 @@ class StageInfo:
     iterations: int
     seconds: float
     cost: float
+    infeasibility: float = math.nan
 
 
 #: Status of a solve its ``cpu_s`` bound stopped (IPOPT's own for ``max_cpu_time``).

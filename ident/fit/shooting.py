@@ -248,7 +248,8 @@ class SingleShooting:
             total += it
             stages.append(StageInfo(width=float(w) if m.family is Family.G1 else None,
                                     status=status, success=success, iterations=it,
-                                    seconds=time.perf_counter() - ts, cost=cost))
+                                    seconds=time.perf_counter() - ts, cost=cost,
+                                    infeasibility=0.0))
         est = self._from_theta(problem, theta, start)
         from .collocation import simulate_estimate
 
