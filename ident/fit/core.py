@@ -74,10 +74,11 @@ RESTART_ROUNDS = 3
 RESTART_GAIN = 0.01
 
 #: Times a fit solves on a run that IPOPT stopped at its iteration or time bound below
-#: every converged run's cost (``solver.path`` ``"resume"``): from the trained model's
-#: gaps, plant cold-s5 (``validation.diagnose_study`` seed 1300, four gaps 2.3-10 mrad)
-#: reached cost 1.36 at the truth (1 % model error) when the last stage's 300 iterations
-#: ran out, while the best converged run sat at 198 and was reported.
+#: every converged run's cost, or when no run converged (``solver.path`` ``"resume"``;
+#: :func:`_resume_candidate`, :func:`_stalled`): from the trained model's gaps, plant
+#: cold-s5 (``validation.diagnose_study`` seed 1300, four gaps 2.3-10 mrad) reached cost
+#: 1.36 at the truth (1 % model error) when the last stage's 300 iterations ran out,
+#: while the best converged run sat at 198 and was reported.
 RESUME_MAX = 2
 
 
@@ -180,7 +181,11 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         Before those rounds, each of ``data_starts`` (path ``"data"``).  Before
         each round, and after each data start, the run of lowest cost is solved on
         (path ``"resume"``) where IPOPT stopped it at a bound below every converged
-        run's cost (:data:`RESUME_MAX`).
+        run's cost, or no run converged (:data:`RESUME_MAX`).  A resumed run that
+        stops at the bound again, feasible, where it began (every gap within a tenth
+        of the accuracy an identified gap is judged by) ended at a stationary point
+        the kink keeps IPOPT's step test from accepting: its status is
+        ``Stationary_At_Limit``, converged (:func:`_stalled`).
 
         A round that lowers the best cost by more than :data:`RESTART_GAIN`
         begins another from the new best; the lowest cost wins as before.  The
@@ -482,7 +487,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         seconds=time.perf_counter() - t_all, method=method.name, start=k_best,
         starts=starts_rep,
         stages=tuple({"width": s.width, "status": s.status, "iterations": s.iterations,
-                      "seconds": _fl(s.seconds), "cost": _fl(s.cost)} for s in info.stages),
+                      "seconds": _fl(s.seconds), "cost": _fl(s.cost),
+                      "infeasibility": _fl(s.infeasibility)} for s in info.stages),
         build_seconds=build_s, nlp=dict(info.nlp), path=path_best)
     noise = {}
     if cov is not None:
