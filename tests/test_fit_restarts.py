@@ -187,3 +187,58 @@ def test_a_resumed_run_that_stops_where_it_began_is_stationary():
     assert not _stalled(model, *before, *_stopped(model, near, 1.6))
     assert not _stalled(model, *before, *_stopped(model, near, 1.4949,
                                                   status="Restoration_Failed"))
+
+
+def test_a_gross_misfit_opens_the_gaps_its_channel_sees_one_at_a_time(mill, monkeypatch):
+    """plantsim hsm-f1 1403 (diagnose_study): C45 at 9.1 mrad was found only from a start
+    with C45 alone opened; the excursion starts open the gaps the worst channel sees,
+    only where its model error is beyond any the verdict accepts."""
+    from types import SimpleNamespace
+
+    from ident.fit import core
+    from ident.fit.verdict import EXCESS_AGREED_MAX, BandCheck
+
+    model = build_fit_model(mill)
+    gaps = {e.id: 1e-3 for e in mill.elements}
+    gaps["C57"] = 6e-3  # already past half its critical limit: not opened again
+    est = Estimate(shared=_shared_from_gaps(model, gaps), window=np.zeros((1, 1)),
+                   x0=np.zeros((1, 1)))
+    runs = [(0, None, est, SimpleNamespace(cost=2.0, success=True), "continued")]
+    ch = list(model.measured)
+    worst = "C46" if "C46" in ch else ch[-1]
+
+    def check(excess_worst):
+        ratio = {c: 1.1 for c in ch}
+        rel = {c: 0.01 for c in ch}
+        ratio[worst], rel[worst] = 100.0, excess_worst / np.sqrt(99.0 / 100.0)
+        return BandCheck(bands=None, ratio=ratio, dof={c: 100.0 for c in ch},
+                         noise_sigma={c: 1.0 for c in ch}, noise_source="windows",
+                         relative=rel)
+
+    # C45 carries most of the worst channel's information, C46 some, C57 too but is open
+    share = {"C45": 0.7, "C46": 0.5, "C57": 0.9, "C34": 0.05}
+    iw = ch.index(worst)
+
+    def info(sens, cov, col):
+        eid = model.shared_names[col[1]].split(".")[0]
+        out = np.zeros(model.ny)
+        out[iw] = share.get(eid, 0.0)
+        out[(iw + 1) % model.ny] = 0.5
+        return out
+
+    monkeypatch.setattr(core, "_residuals", lambda *a: np.zeros(4))
+    monkeypatch.setattr(core, "_window_lengths", lambda *a: [1])
+    monkeypatch.setattr(core, "collocation_sensitivity", lambda *a: None)
+    monkeypatch.setattr(core, "covariance", lambda *a: None)
+    monkeypatch.setattr(core, "channel_information", info)
+    monkeypatch.setattr(core, "band_check", lambda *a: check(2 * EXCESS_AGREED_MAX))
+    got = core._open_starts(model, core.Collocation(), None, runs)
+    assert [t for _, t in got] == ["open C45", "open C46"][:core.OPEN_MAX]
+    j = model.shared_names.index("C45.gap")
+    crit = next(e.gap_critical for e in mill.elements if e.id == "C45")
+    assert got[0][0][j] == pytest.approx(crit)
+    others = [i for i in range(model.n_shared) if i != j]
+    assert np.array_equal(got[0][0][others], est.shared[others])
+    # a model error the verdict could accept where starts agree: no excursion
+    monkeypatch.setattr(core, "band_check", lambda *a: check(0.5 * EXCESS_AGREED_MAX))
+    assert core._open_starts(model, core.Collocation(), None, runs) == []
