@@ -49,7 +49,7 @@ from ..description import Mill
 from ..errors import ConvergenceWarning, FitError
 from ..model.dynamics import Family
 from ..model.linear import incidence
-from .collocation import STATIONARY, STATIONARY_INF_PR, Collocation
+from .collocation import STATIONARY, STATIONARY_INF_PR, STATIONARY_ITER, Collocation
 from ..model.linear import angles_from_deflections
 from .model import FitModel, build_fit_model
 from .problem import OUT_OF_TIME, Estimate, Problem, SolveInfo, initial_estimate, make_problem
@@ -910,8 +910,9 @@ def _stalled(model: FitModel, before: Estimate, before_info: SolveInfo, after: E
              after_info: SolveInfo) -> bool:
     """Whether a resumed run that IPOPT again stopped at a bound ended where it began.
 
-    True when both calls stopped at a bound (:data:`AT_BOUND`), the second ended feasible
-    (constraint violation at most :data:`~ident.fit.collocation.STATIONARY_INF_PR`), at a
+    True when both calls stopped at a bound (:data:`AT_BOUND`), the second after at least
+    :data:`~ident.fit.collocation.STATIONARY_ITER` iterations and feasible (constraint
+    violation at most :data:`~ident.fit.collocation.STATIONARY_INF_PR`), at a
     cost not above the first's by more than :data:`RESTART_GAIN`, and every gap within
     :data:`STALL_FRACTION` of :func:`~ident.fit.verdict.accuracy` of the first's end.
     Then the end is a stationary point the kink keeps IPOPT's step test from accepting,
@@ -923,8 +924,9 @@ def _stalled(model: FitModel, before: Estimate, before_info: SolveInfo, after: E
     if before_info.status not in AT_BOUND or after_info.status not in AT_BOUND:
         return False
     last = after_info.stages[-1] if after_info.stages else None
-    if last is None or not last.infeasibility <= STATIONARY_INF_PR:
-        return False
+    if last is None or not last.infeasibility <= STATIONARY_INF_PR or \
+            last.iterations < STATIONARY_ITER:
+        return False  # infeasible, or too few iterations to tell a stall from a slow descent
     if not after_info.cost <= before_info.cost * (1.0 + RESTART_GAIN):
         return False
     a, b = _gap_dict(model, before.shared), _gap_dict(model, after.shared)
