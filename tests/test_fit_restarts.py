@@ -232,11 +232,10 @@ def test_a_gross_misfit_opens_the_gaps_its_channel_sees_one_at_a_time(mill, monk
         return out
 
     monkeypatch.setattr(core, "_residuals", lambda *a: np.zeros(4))
-    monkeypatch.setattr(core, "_window_lengths", lambda *a: [1])
     monkeypatch.setattr(core, "collocation_sensitivity", lambda *a: None)
     monkeypatch.setattr(core, "covariance", lambda *a: None)
     monkeypatch.setattr(core, "channel_information", info)
-    monkeypatch.setattr(core, "band_check", lambda *a: check(2 * EXCESS_AGREED_MAX))
+    monkeypatch.setattr(core, "_band_check", lambda *a: check(2 * EXCESS_AGREED_MAX))
     got = core._open_starts(model, core.Collocation(), None, runs)
     assert [t for _, t in got] == ["open C45", "open C46"][:core.OPEN_MAX]
     j = model.shared_names.index("C45.gap")
@@ -245,5 +244,5 @@ def test_a_gross_misfit_opens_the_gaps_its_channel_sees_one_at_a_time(mill, monk
     others = [i for i in range(model.n_shared) if i != j]
     assert np.array_equal(got[0][0][others], est.shared[others])
     # a model error the verdict could accept where starts agree: no excursion
-    monkeypatch.setattr(core, "band_check", lambda *a: check(0.5 * EXCESS_AGREED_MAX))
+    monkeypatch.setattr(core, "_band_check", lambda *a: check(0.5 * EXCESS_AGREED_MAX))
     assert core._open_starts(model, core.Collocation(), None, runs) == []

@@ -457,16 +457,15 @@ def stationary(stats: Mapping[str, Any]) -> bool:
     if str(stats.get("return_status")) not in ("Maximum_Iterations_Exceeded",
                                                  "Maximum_CpuTime_Exceeded"):
         return False
-    it = stats.get("iterations") or {}
-    obj = list(it.get("obj", []))
-    pr = list(it.get("inf_pr", []))
-    if len(obj) <= STATIONARY_ITER or not pr:
+    obj = list((stats.get("iterations") or {}).get("obj", []))
+    pr = _last_inf_pr(stats)
+    if len(obj) <= STATIONARY_ITER or not math.isfinite(pr):
         return False
     a, b = float(obj[-1 - STATIONARY_ITER]), float(obj[-1])
     if not (math.isfinite(a) and math.isfinite(b)):
         return False
     return bool(abs(a - b) <= STATIONARY_REL * max(abs(b), 1e-12)
-                and float(pr[-1]) <= STATIONARY_INF_PR)
+                and pr <= STATIONARY_INF_PR)
 
 
 def _ratio_shape(elements_per_sample: float) -> tuple[int, int]:

@@ -57,7 +57,7 @@ from .result import NOISE_RATIO_MAX, ElementFit, FitResult, SolverReport
 from .shooting import SingleShooting
 from .uncertainty import Z95, Covariance, channel_information, collocation_sensitivity, \
     covariance, model_error_se, noise_floor, shooting_sensitivity, window_influence
-from .verdict import EXCESS_AGREED_MAX, SEEN_SHARE, accuracy, agree_tolerance, agreement, \
+from .verdict import EXCESS_AGREED_MAX, accuracy, agree_tolerance, agreement, \
     band_check, confirmation_start, identifiable_width, seen_channels, verdicts, window_residuals
 from .windows import FitWindow
 
@@ -573,17 +573,14 @@ def assess(problem: Problem, method: Collocation | SingleShooting, est: Estimate
     cov = sens = None
     if uncertainty:
         try:
-            sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
-                    else shooting_sensitivity(method, problem, est))
-            cov = covariance(sens)
+            sens, cov = _sensitivity(method, problem, est)
         except Exception as exc:  # noqa: BLE001 - report, never invent a number
             warns.append(f"uncertainty failed ({type(exc).__name__}: {exc}); intervals omitted")
     information = moves = None
     if sens is not None and cov is not None:
         information, moves = _gap_diagnostics(model, sens, cov, est)
     ratio = _noise_ratio(r_fit, problem)
-    check = band_check(problem, window_residuals(r_fit, model.ny,
-                                                 _window_lengths(method, problem, r_fit)))
+    check = _band_check(method, problem, r_fit)
     excess = {eid: max((check.excess(c) for c in seen), default=0.0)
               for eid, seen in seen_channels(model, information).items()}
     elements, ewarn = _element_report(model, problem, est, cov, _final_width(method),
@@ -664,9 +661,7 @@ def _gap_se_noise(method: Any, problem: Problem, est: Estimate) -> dict[str, flo
     """The noise's standard error of every g1 gap at ``est`` (empty where it fails)."""
     model = problem.model
     try:
-        sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
-                else shooting_sensitivity(method, problem, est))
-        cov = covariance(sens)
+        _, cov = _sensitivity(method, problem, est)
     except Exception:  # noqa: BLE001 - the repair then judges on the depth alone
         return {}
     return {e.id: cov.se(("shared", model.shared_names.index(f"{e.id}.gap")))
@@ -751,27 +746,24 @@ def _open_starts(model: FitModel, method: Any, problem: Problem, runs: list
     if model.family is not Family.G1 or not runs:
         return []
     est = _best_run(runs)[2]
-    r = _residuals(method, problem, est)
-    check = band_check(problem, window_residuals(r, model.ny,
-                                                 _window_lengths(method, problem, r)))
+    check = _band_check(method, problem, _residuals(method, problem, est))
     gross = {c: check.excess(c) for c in check.ratio if not check.passes(c)}
     gross = {c: x for c, x in gross.items() if math.isfinite(x) and x > EXCESS_AGREED_MAX}
     if not gross:
         return []
-    worst = model.measured.index(max(gross, key=gross.get))
+    worst = max(gross, key=gross.get)
     try:
-        sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
-                else shooting_sensitivity(method, problem, est))
-        cov = covariance(sens)
+        sens, cov = _sensitivity(method, problem, est)
     except Exception:  # noqa: BLE001 - no excursion without knowing who the channel sees
         return []
+    info = {e.id: channel_information(sens, cov, ("shared", model.shared_names.index(
+        f"{e.id}.gap"))) for e in model.mill.elements}
+    seen = seen_channels(model, info)
     ranked = []
     for e in model.mill.elements:
         j = model.shared_names.index(f"{e.id}.gap")
-        share = channel_information(sens, cov, ("shared", j))
-        if share[worst] >= SEEN_SHARE * float(np.max(share)) > 0 and \
-                est.shared[j] < 0.5 * e.gap_critical:
-            ranked.append((float(share[worst]), e, j))
+        if worst in seen[e.id] and est.shared[j] < 0.5 * e.gap_critical:
+            ranked.append((float(info[e.id][model.measured.index(worst)]), e, j))
     out = []
     # elements without a channel of their own first: a measured gap shows in its own
     # torque, an unmeasured one only through its neighbours' (hsm-f1 1401: T_C46's
@@ -783,6 +775,19 @@ def _open_starts(model: FitModel, method: Any, problem: Problem, runs: list
         sv[j] = float(np.clip(e.gap_critical, model.shared_lb[j], model.shared_ub[j]))
         out.append((sv, f"open {e.id}"))
     return out
+
+
+def _sensitivity(method: Any, problem: Problem, est: Estimate) -> tuple[Any, Covariance]:
+    """Residual sensitivities of ``est`` and their covariance (raises where that fails)."""
+    sens = (collocation_sensitivity(method, problem, est) if isinstance(method, Collocation)
+            else shooting_sensitivity(method, problem, est))
+    return sens, covariance(sens)
+
+
+def _band_check(method: Any, problem: Problem, r: np.ndarray) -> Any:
+    """:func:`~ident.fit.verdict.band_check` of a residual vector of ``method``."""
+    return band_check(problem, window_residuals(r, problem.model.ny,
+                                                _window_lengths(method, problem, r)))
 
 
 def _window_lengths(method: Any, problem: Problem, r: np.ndarray) -> list[int]:
@@ -868,9 +873,7 @@ def _above_noise_floor(method: Any, problem: Problem, runs: list, *,
     if not ok:
         return True
     best = min(ok, key=lambda r: r[3].cost)
-    r = _residuals(method, problem, best[2])
-    check = band_check(problem, window_residuals(r, problem.model.ny,
-                                                 _window_lengths(method, problem, r)))
+    check = _band_check(method, problem, _residuals(method, problem, best[2]))
     return not (check.all_at_noise if strict else check.all_pass)
 
 
