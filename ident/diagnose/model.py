@@ -15,7 +15,16 @@ when a recording lies outside the library, and then both are shrunk towards
 "don't know"; both are shrunk towards "don't know" as the recording
 leaves the library's range; a recording so far outside that the
 probabilities are uniform keeps the state the trees point to (a tie is no
-reason to say "good").  Elements learn from the torque features,
+reason to say "good").  The state is the most probable one, except that a
+target whose probability of ``good`` falls below its ``alarm`` threshold is
+called worn (critical where that is the likelier of the two): the threshold is
+calibrated at training on the library's out-of-fold probabilities
+(:data:`CALIBRATION_FOLDS` folds) as the highest that keeps the false alarms
+among the library's good samples at :data:`FALSE_ALARM_RATE` (:func:`alarm_threshold`),
+so a worn element the trees see only dimly is not called good because "good"
+is the likeliest of three; where the most probable state alone already raises
+more false alarms (the bearings), the threshold is 0 and the most probable
+state decides.  Elements learn from the torque features,
 bearings from their accelerometers' features (seed section 2.2) plus their
 context: the static torque, rise time and idle load, and the numbers of bites
 and releases the medians are of (always kept); each target from the
@@ -56,7 +65,8 @@ __all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "sa
            "load_model", "model_cache_path", "library_versions", "diagnose_features",
            "diagnose_recording",
            "element_feature_names", "bearing_feature_names", "bearing_context_names",
-           "UNCERTAIN_PROBABILITY", "TRAINING_RECIPE"]
+           "UNCERTAIN_PROBABILITY", "TRAINING_RECIPE", "FALSE_ALARM_RATE", "CALIBRATION_FOLDS",
+           "alarm_threshold"]
 
 #: a decision whose probability is below this is reported ``uncertain``
 UNCERTAIN_PROBABILITY = 0.6
@@ -65,8 +75,16 @@ ARTEFACT_FORMAT = 2  # 2: keyed by the mill's content hash, not its file's bytes
 #: draws, its simulation or the features change, so that cached models of an older recipe
 #: are retrained rather than used (2: idle drag in half the samples, spread uniformly over
 #: the masses; 2-8 bars; rise times 5-80 ms; the numbers of transients in the bearings'
-#: context)
-TRAINING_RECIPE = 2
+#: context; 3: each target's alarm threshold calibrated out of fold)
+TRAINING_RECIPE = 3
+#: false alarms (good samples called worn or critical) an alarm threshold allows on the
+#: library's out-of-fold probabilities: the rate the wear diagnosis is asked not to exceed
+FALSE_ALARM_RATE = 0.10
+#: folds of the out-of-fold probabilities that calibrate the alarm thresholds
+CALIBRATION_FOLDS = 3
+#: fewest library samples (and good samples of a target) an alarm threshold is calibrated
+#: from; a smaller library (tests, demos) decides by the most probable state alone
+CALIBRATION_MIN_SAMPLES = 60
 
 
 def library_versions() -> dict[str, str]:
@@ -112,6 +130,70 @@ def bearing_feature_names(columns: list[str], bearing_id: str) -> list[str]:
         + bearing_context_names(columns)
 
 
+def decide_state(proba_in_range: np.ndarray, alarm: float = 0.0) -> str:
+    """The state of one target from its in-range probabilities (``STATES`` order).
+
+    The most probable state, except that a probability of ``good`` below
+    ``alarm`` calls the target worn, or critical where that is the likelier of
+    the two.  Every decision that says "not good" by the most probable state
+    says so here too, whatever ``alarm``.
+
+    Parameters
+    ----------
+    proba_in_range : array-like, shape (3,)
+    alarm : float
+        See :func:`alarm_threshold`.
+
+    Returns
+    -------
+    str
+    """
+    p = np.asarray(proba_in_range, dtype=float).ravel()
+    k = int(np.argmax(p))
+    if k == 0 and p[0] < alarm:
+        k = 1 if p[1] >= p[2] else 2
+    return STATES[k]
+
+
+def alarm_threshold(proba: np.ndarray, states: np.ndarray, *,
+                    rate: float = FALSE_ALARM_RATE) -> float:
+    """The highest probability of ``good`` below which to call a target not good.
+
+    Over labelled samples the false alarms of :func:`decide_state` (good
+    samples called worn or critical) grow with the threshold; this returns the
+    highest threshold at which they stay at or below ``rate``.  It is 0 where
+    the most probable state alone already exceeds ``rate``, or where no sample
+    is good.
+
+    Parameters
+    ----------
+    proba : ndarray, shape (n, 3)
+        Out-of-fold probabilities (``STATES`` order).
+    states : ndarray of str, shape (n,)
+        The samples' true states.
+    rate : float
+        Allowed share of good samples called worn or critical.
+
+    Returns
+    -------
+    float
+    """
+    proba = np.asarray(proba, dtype=float)
+    good = np.asarray(states) == STATES[0]
+    if not good.any():
+        return 0.0
+    pg = proba[good]
+    by_max = np.argmax(pg, axis=1) > 0
+    budget = int(np.floor(rate * good.sum() + 1e-9)) - int(by_max.sum())
+    if budget < 0:
+        return 0.0
+    # each good sample still called good raises an alarm once the threshold passes its p(good)
+    cand = np.sort(pg[~by_max, 0])
+    if budget >= cand.size:
+        return 1.0
+    return float(cand[budget])
+
+
 @dataclass(frozen=True)
 class TargetModel:
     """Regressor and classifier of one element or bearing.
@@ -134,6 +216,9 @@ class TargetModel:
         A torque channel sees the element (always True for bearings).
     blend : float
         Weight of the regressor's interval probabilities (the classifier's: ``1 - blend``).
+    alarm : float
+        Probability of ``good`` below which the target is called worn or critical
+        (:func:`alarm_threshold`); 0 decides by the most probable state alone.
     """
 
     kind: str  # "element" | "bearing"
@@ -145,6 +230,11 @@ class TargetModel:
     class_medians: dict[str, dict[str, float]]
     observable: bool = True
     blend: float = 0.75
+    alarm: float = 0.0
+
+    def decide(self, proba_in_range: np.ndarray) -> str:
+        """The state of one row of :meth:`state_proba_in_range` (see :func:`decide_state`)."""
+        return decide_state(proba_in_range, self.alarm)
 
     def state_proba_in_range(self, X: np.ndarray) -> np.ndarray:
         """Probabilities of :data:`~ident.diagnose.states.STATES` as if ``X`` were in range.
@@ -282,6 +372,44 @@ def _importances(reg: GapRegressor, X: np.ndarray, y: np.ndarray, names: list[st
     return tuple((k, v) for k, v in imp[:top] if v > 0)
 
 
+def _fit_estimators(X: np.ndarray, y: np.ndarray, yr: np.ndarray, *, max_iter: int, leaf: int,
+                    random_state: int | None) -> tuple[GapRegressor, WearClassifier]:
+    """The regressor (of ``yr``) and classifier (of ``y``) of one target."""
+    reg = GapRegressor(max_iter=max_iter, min_samples_leaf=leaf,
+                       random_state=random_state).fit(X, yr)
+    clf = WearClassifier(max_iter=max(max_iter // 2, 1), min_samples_leaf=leaf,
+                         calibration=None, random_state=random_state).fit(X, y)
+    return reg, clf
+
+
+def _calibrated_alarm(X: np.ndarray, y: np.ndarray, yr: np.ndarray, limits: tuple[float, float],
+                      *, blend: float, max_iter: int, leaf: int,
+                      random_state: int | None) -> float:
+    """:func:`alarm_threshold` of a target's out-of-fold state probabilities.
+
+    The estimators are refitted on :data:`CALIBRATION_FOLDS` - 1 folds and
+    predict the held-out one, with the features chosen on the whole library
+    (a small optimism the threshold tolerates).  0 for a library smaller than
+    :data:`CALIBRATION_MIN_SAMPLES` or with fewer good samples than that.
+    """
+    from sklearn.model_selection import KFold, StratifiedKFold
+
+    good = int(np.sum(y == STATES[0]))
+    if X.shape[0] < CALIBRATION_MIN_SAMPLES or good < CALIBRATION_MIN_SAMPLES // 2:
+        return 0.0
+    oof = np.zeros((X.shape[0], len(STATES)))
+    _, counts = np.unique(y, return_counts=True)
+    split = StratifiedKFold if counts.min() >= CALIBRATION_FOLDS else KFold
+    folds = split(CALIBRATION_FOLDS, shuffle=True, random_state=0)
+    for tr, te in folds.split(X, y):
+        reg, clf = _fit_estimators(X[tr], y[tr], yr[tr], max_iter=max_iter, leaf=leaf,
+                                   random_state=random_state)
+        oof[te] = TargetModel(kind="", features=(), classifier=clf, regressor=reg,
+                              limits=limits, importances=(), class_medians={},
+                              blend=blend).state_proba_in_range(X[te])
+    return alarm_threshold(oof, y)
+
+
 def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
                 max_iter: int = 200, max_features: int = 200, blend: float = 0.75,
                 progress: Callable[[str], None] | None = None) -> DiagnosticModel:
@@ -348,10 +476,8 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
             y = library.truth[ycol].to_numpy()
             # leaves of at least 10 samples, fewer for a small library (tests, demos)
             leaf = int(np.clip(X.shape[0] // 20, 2, 10))
-            reg = GapRegressor(max_iter=max_iter, min_samples_leaf=leaf,
-                               random_state=random_state).fit(X, yr)
-            clf = WearClassifier(max_iter=max(max_iter // 2, 1), min_samples_leaf=leaf,
-                                 calibration=None, random_state=random_state).fit(X, y)
+            reg, clf = _fit_estimators(X, y, yr, max_iter=max_iter, leaf=leaf,
+                                       random_state=random_state)
             med = {}
             for st_ in STATES:
                 sel = y == st_
@@ -365,7 +491,9 @@ def train_model(library: Library, mill: Mill, *, random_state: int | None = 0,
                 limits=(float(limits[0]), float(limits[1])),
                 importances=_importances(reg, X, yr, names, random_state=random_state),
                 class_medians=med, observable=(tid in seen) if kind == "element" else True,
-                blend=float(blend))
+                blend=float(blend),
+                alarm=_calibrated_alarm(X, y, yr, limits, blend=float(blend), max_iter=max_iter,
+                                        leaf=leaf, random_state=random_state))
     return DiagnosticModel(mill_name=mill.name, mill_hash=mill.content_hash(),
                            versions=library_versions(), feature_names=tuple(X_all.columns),
                            targets=targets, n_samples=len(library), ranges=library.ranges,
@@ -548,7 +676,7 @@ def diagnose_features(model: DiagnosticModel, features: pd.Series | Mapping[str,
             probs = {s_: float(proba[0, i]) for i, s_ in enumerate(STATES)}
             # the state is the in-range decision (shrinking towards uniform keeps its order);
             # fully shrunk, the probabilities tie, and "don't know" must not read as "good"
-            state = STATES[int(np.argmax(tm.state_proba_in_range(x)[0]))]
+            state = tm.decide(tm.state_proba_in_range(x)[0])
             nov = float(nov_[0])
             size = float(tm.regressor.predict(x)[0])
             lo, hi = tm.regressor.predict_interval(x)[0]
