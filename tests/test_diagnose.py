@@ -377,6 +377,9 @@ def test_cli_train_then_diagnose_trains_and_caches(mill_path, recording, tmp_pat
                  "--jobs", "1", "--no-bearings", "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["samples"] == 10 and Path(summary["model"]) == out and out.exists()
+    # 10 samples calibrate no alarm: every target decides by its most probable state
+    assert set(summary["alarms"]) == set(summary["elements"]) | set(summary["bearings"])
+    assert set(summary["alarms"].values()) == {0.0}
     assert main(["train", "--mill", str(mill_path), "--out", str(out), "--samples", "3"]) == 2
     assert "--samples must be at least 10" in capsys.readouterr().err
 

@@ -59,6 +59,7 @@ def train_and_save(mill, out, *, samples: int, seed: int, jobs: int, bearings: b
     return {"model": str(path), "mill": mill.name, "mill_hash": mill.content_hash(),
             "samples": samples, "seed": seed, "versions": model.versions,
             "elements": list(model.element_ids), "bearings": list(model.bearing_ids),
+            "alarms": {tid: tm.alarm for tid, tm in model.targets.items()},
             "seconds": {"simulate": t1 - t0, "train": t2 - t1}}
 
 
