@@ -23,7 +23,7 @@ calibrated at training on the library's out-of-fold probabilities
 among the library's good samples at :data:`FALSE_ALARM_RATE` (:func:`alarm_threshold`),
 so a worn element the trees see only dimly is not called good because "good"
 is the likeliest of three; where the most probable state alone already raises
-more false alarms (the bearings), the threshold is 0 and the most probable
+more false alarms (hsm-f1's bearings), the threshold is 0 and the most probable
 state decides.  Elements learn from the torque features,
 bearings from their accelerometers' features (seed section 2.2) plus their
 context: the static torque, rise time and idle load, and the numbers of bites
@@ -66,7 +66,7 @@ __all__ = ["DiagnosticModel", "TargetDiagnosis", "Diagnosis", "train_model", "sa
            "diagnose_recording",
            "element_feature_names", "bearing_feature_names", "bearing_context_names",
            "UNCERTAIN_PROBABILITY", "TRAINING_RECIPE", "FALSE_ALARM_RATE", "CALIBRATION_FOLDS",
-           "alarm_threshold"]
+           "alarm_threshold", "decide_state"]
 
 #: a decision whose probability is below this is reported ``uncertain``
 UNCERTAIN_PROBABILITY = 0.6
