@@ -246,3 +246,34 @@ def test_a_gross_misfit_opens_the_gaps_its_channel_sees_one_at_a_time(mill, monk
     # a model error the verdict could accept where starts agree: no excursion
     monkeypatch.setattr(core, "_band_check", lambda *a: check(0.5 * EXCESS_AGREED_MAX))
     assert core._open_starts(model, core.Collocation(), None, runs) == []
+
+
+def test_partner_of_a_parked_series_gap_is_not_identified(mill):
+    """A gap whose series partner no window drives across is not identified, whatever its
+    own interval: the two trade their slack along a ridge the interval does not see
+    (plantsim hsm-f1 wear draw 1602: C12 0.00 [0, 0.05] mrad beside a parked C23 9.07,
+    truth 7.06 and 2.57).  Elements outside a pair, and a pair with no parked member,
+    keep their verdict."""
+    from ident.fit.core import _split_undetermined, series_pairs
+    from ident.fit.result import ElementFit
+
+    a, b = series_pairs(mill)[0]
+    el = ElementFit(gap=1e-3, gap_ci95=(0.9e-3, 1.1e-3), gap_se=5e-5, gap_open=0.0,
+                    gap_open_ci95=(0.0, 0.0), gap_open_windows=(0.0,), gap_mm=None,
+                    params={}, params_se={}, identifiable=True, gap_open_identifiable=True)
+    parked_el = replace(el, gap=9e-3, gap_ci95=(7e-3, 3e-2), identifiable=False,
+                        reason="no window drives it across its gap")
+    elements = {e.id: el for e in mill.elements}
+    elements[b] = parked_el
+    got = _split_undetermined(mill, elements, {b}, 3e-2)
+    assert not got[a].identifiable and got[a].gap_ci95 == (0.0, 3e-2)
+    assert f"series partner {b}" in got[a].reason
+    assert got[b] == parked_el
+    partners = {x for p in series_pairs(mill) if b in p for x in p}
+    assert all(got[e.id] is el for e in mill.elements if e.id not in partners)
+    assert all(not got[x].identifiable for x in partners - {b})
+    # nothing parked: unchanged; the partner parked too: both keep their own reasons
+    assert all(v is elements[k] for k, v in
+               _split_undetermined(mill, elements, set(), 3e-2).items())
+    both = _split_undetermined(mill, {**elements, a: parked_el}, {a, b}, 3e-2)
+    assert both[a] is parked_el and both[b] is parked_el

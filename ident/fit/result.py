@@ -69,7 +69,9 @@ class ElementFit:
         g3/g4: ``a0, sigma, shift``) with standard errors under ``params_se``.
     identifiable : bool
         False when the channels do not pin the gap down: its interval is wider
-        than ``max(25 %, 0.5 mrad)`` either side, or the data do not see it.
+        than ``max(25 %, 0.5 mrad)`` either side, the data do not see it, no
+        window drives it across its gap, or its series partner is not driven
+        across (then its interval is ``[0, gap_max]``).
     gap_open_identifiable : bool
     identified : bool
         The fit's verdict (:mod:`ident.fit.verdict`): identifiable, the solver

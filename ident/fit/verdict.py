@@ -9,7 +9,9 @@ fails is its one-line ``reason``:
 2. the gap is **identifiable** from the windows (:func:`ident.fit.core.assess`):
    a torque channel sees it, some window drives the element across its gap
    (drive flank and back flank), and its 95 % interval is no wider than
-   ``max(25 %, 0.5 mrad)`` either side;
+   ``max(25 %, 0.5 mrad)`` either side; and where it sits in a series pair, its
+   partner is driven across too (:func:`ident.fit.core._split_undetermined`: a
+   parked partner leaves the split of their slack undetermined);
 3. on every channel that carries a fair share of the gap's information
    (:data:`SEEN_SHARE` of the largest channel's), the residual in the
    **transient band** is at the sensor noise there (:mod:`ident.fit.noise`:
