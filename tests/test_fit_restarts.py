@@ -277,3 +277,25 @@ def test_partner_of_a_parked_series_gap_is_not_identified(mill):
                _split_undetermined(mill, elements, set(), 3e-2).items())
     both = _split_undetermined(mill, {**elements, a: parked_el}, {a, b}, 3e-2)
     assert both[a] is parked_el and both[b] is parked_el
+
+
+def test_confirmation_vector_moves_every_gap_within_bounds(mill):
+    """The start the search tries when the best run passes only under the model-error
+    allowance: every gap moved off by at least the agreement tolerance (so that falling
+    back to it means something), the other parameters kept, the bounds respected."""
+    from ident.fit.core import _confirm_vector
+    from ident.fit.verdict import agree_tolerance
+
+    model = build_fit_model(mill)
+    gaps = {e.id: 2e-3 for e in mill.elements}
+    gaps[mill.elements[0].id] = 0.0
+    gaps[mill.elements[1].id] = 0.95 * model.gap_max
+    sv = _shared_from_gaps(model, gaps)
+    got = _confirm_vector(model, sv)
+    idx = [model.shared_names.index(f"{e.id}.gap") for e in mill.elements]
+    assert np.all(got[idx] >= model.shared_lb[idx]) and np.all(got[idx] <= model.shared_ub[idx])
+    moved = np.abs(got[idx] - sv[idx])
+    assert np.all(moved > np.array([agree_tolerance(g) for g in sv[idx]]))
+    rest = [j for j in range(model.n_shared) if j not in idx]
+    assert np.array_equal(got[rest], sv[rest])
+    assert np.array_equal(sv, _shared_from_gaps(model, gaps))  # the input is not changed

@@ -450,12 +450,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         if still_above():
             # a start with every gap moved off the best run's (verdict.confirmation_start): a
             # model error falls back to the same gaps, a local minimum ends elsewhere
-            best_sh = _best_run(runs)[2].shared
-            sv = best_sh.copy()
-            for eid, g in confirmation_start(_gap_dict(model, best_sh)).items():
-                j = model.shared_names.index(f"{eid}.gap")
-                sv[j] = float(np.clip(g, model.shared_lb[j], model.shared_ub[j]))
-            attempt(sv, "confirm", paths[0])
+            attempt(_confirm_vector(model, _best_run(runs)[2].shared), "confirm", paths[0])
         if still_above():
             # even where the confirmation fell back to both gaps of a pair: a swapped pair
             # can hold its basin against a 50 % move (ident cold-s5 3000 from gaps up to
@@ -466,6 +461,15 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
                 attempt(sv, tag, held_path)
         if not _best_run(runs)[3].cost < best_cost * (1.0 - RESTART_GAIN):
             break  # this round found nothing lower: another from the same best repeats it
+    if restarts == "auto" and model.family is Family.G1 and not over_budget() and \
+            any(r[3].success for r in runs) and not any(r[4] == "confirm" for r in runs) and \
+            _above_noise_floor(method, problem, runs, strict=True):
+        # the best run passes only under the model-error allowance: the search does not
+        # settle for it without one start moved off (plantsim hsm-f1 fit-study draws 8201
+        # and 8300 from the designed gaps: accepted at 1.05 and 1.14 times the optimum's
+        # cost, C46 2.73 against 3.17 mrad and C12 1.63 against 2.07; their fits from gaps
+        # up to 3x off reached the optimum, one of them through this start)
+        attempt(_confirm_vector(model, _best_run(runs)[2].shared), "confirm", paths[0])
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
     k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
@@ -688,6 +692,16 @@ def _repaired_start(model: FitModel, est: Estimate, width: float, min_gap: float
                 sv[k] = g
                 moved = True
     return sv if moved else None
+
+
+def _confirm_vector(model: FitModel, shared: np.ndarray) -> np.ndarray:
+    """``shared`` with every gap moved off (:func:`ident.fit.verdict.confirmation_start`),
+    clipped to its bounds."""
+    sv = shared.copy()
+    for eid, g in confirmation_start(_gap_dict(model, shared)).items():
+        j = model.shared_names.index(f"{eid}.gap")
+        sv[j] = float(np.clip(g, model.shared_lb[j], model.shared_ub[j]))
+    return sv
 
 
 def _series_starts(model: FitModel, runs: list) -> list[tuple[np.ndarray, str]]:
