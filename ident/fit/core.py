@@ -472,10 +472,11 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
             any(r[3].success for r in runs) and not any(r[4] == "confirm" for r in runs) and \
             _above_noise_floor(method, problem, runs, strict=True):
         # the best run passes only under the model-error allowance: the search does not
-        # settle for it without one start moved off (plantsim hsm-f1 fit-study draws 8201
-        # and 8300 from the designed gaps: accepted at 1.05 and 1.14 times the optimum's
-        # cost, C46 2.73 against 3.17 mrad and C12 1.63 against 2.07; their fits from gaps
-        # up to 3x off reached the optimum, one of them through this start)
+        # settle for it without one start moved off (plantsim hsm-f1 fit-study 8300 from
+        # the designed gaps: accepted at 1.14 times the optimum's cost with C12 1.63
+        # against 2.07 mrad; this start ended at 1.08 times it, every gap right.  On 8201,
+        # accepted at 1.2 times with C46 2.73 against 3.17, it ended higher and changed
+        # nothing)
         attempt(_confirm_vector(model, _best_run(runs)[2].shared), "confirm", paths[0])
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
@@ -1210,8 +1211,8 @@ def _split_undetermined(mill: Mill, elements: dict[str, ElementFit], parked: set
                 out[x] = replace(
                     el, identifiable=False, gap_ci95=(0.0, float(gap_max)),
                     reason=(f"its series partner {y} is not driven across its gap, so the "
-                            f"split of their slack is not determined (the two trade it "
-                            f"along a ridge the interval does not see)"))
+                            "split of their slack is not determined (the two trade it "
+                            "along a ridge the interval does not see)"))
     return out
 
 
