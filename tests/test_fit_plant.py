@@ -39,7 +39,7 @@ from ident.io import read_recording
 from ident.segment import segment_transients
 from validation import plantsim
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 SEEDS = {"hsm-f1": 4101, "cold-s5": 4102}
 

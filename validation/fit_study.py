@@ -184,15 +184,14 @@ FITS = ("design", "off", "truth")
 
 
 def run_one(gen: str, mill_name: str, seed: int, directory: str,
-            fits: tuple[str, ...] = FITS, ramp_polish: bool = False) -> dict:
-    """Fit one recording three times (module docstring), or the named ``fits`` of them,
-    optionally with the ramp-shape polish (``Collocation(ramp_polish=True)``); never raises."""
+            fits: tuple[str, ...] = FITS) -> dict:
+    """Fit one recording three times (module docstring), or the named ``fits`` of them;
+    never raises."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     warnings.simplefilter("ignore")
-    from ident.fit import Collocation, fit_gaps
+    from ident.fit import fit_gaps
 
     _instrument()
-    how = {"method": Collocation(ramp_polish=True)} if ramp_polish else {}
 
     t0 = time.perf_counter()
     row: dict[str, Any] = {"gen": gen, "mill": mill_name, "seed": seed}
@@ -214,7 +213,7 @@ def run_one(gen: str, mill_name: str, seed: int, directory: str,
         ts = time.perf_counter()
         try:
             _INSTRUMENT.clear()
-            res = fit_gaps(mill, windows, time_budget_s=900.0, **how, **kw)
+            res = fit_gaps(mill, windows, time_budget_s=900.0, **kw)
             row["fits"].append(_fit_row(res, mill, gaps, start, time.perf_counter() - ts))
             row["fits"][-1]["instrument"] = _INSTRUMENT[-1] if _INSTRUMENT else {}
         except Exception as exc:  # noqa: BLE001
@@ -339,9 +338,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fits", default=",".join(FITS),
                    help="which fits per recording (default design,off,truth; without the "
                         "truth no fit is classed as at the optimum or in a local minimum)")
-    p.add_argument("--ramp-polish", action="store_true",
-                   help="fit with Collocation(ramp_polish=True): the load ramps' shape freed "
-                        "in a last solve")
     p.add_argument("--summary-only", action="store_true")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -365,8 +361,7 @@ def main(argv: list[str] | None = None) -> int:
             bad = sorted(set(fits) - set(FITS))
             if bad:
                 p.error(f"--fits: unknown {bad}; choose from {list(FITS)}")
-            futs = [ex.submit(run_one, g, m, s, str(tmp), fits, args.ramp_polish)
-                    for g, m, s in jobs]
+            futs = [ex.submit(run_one, g, m, s, str(tmp), fits) for g, m, s in jobs]
             for fu in tqdm(as_completed(futs), total=len(futs), desc="fit study",
                            file=sys.stderr):
                 row = fu.result()

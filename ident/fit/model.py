@@ -27,8 +27,8 @@ plants record besides the driveline:
   on the rolls alone cannot do either;
 * the load ramp's **shape** (per window, :func:`ramp_shape`: a skew, and five
   weights that take the skewed cosine to linear, exponential or asymmetric
-  ramps, freed in a last solve with ``Collocation(ramp_polish=True)``,
-  :class:`ident.fit.collocation.Collocation`; held at 0 otherwise), and the idle side of each step
+  ramps; the collocation frees the weights in a last solve only,
+  :class:`ident.fit.collocation.Collocation`), and the idle side of each step
   held near the segmenter's idle level.
 
 On plant recording cold-s5 seed 202 (``validation.plantsim``, gaps right) they
@@ -331,10 +331,9 @@ def ramp_shape(s: Any, skew: Any = 0.0, weights: Sequence[Any] = (), xp: Any = n
     record lie within 0.9 % of the step of this family; the skewed cosine alone
     misses the linear and exponential ones by 4-12 %
     (``tests/test_fit_nuisance.py``).  The rate may jump at the ends (a ramp
-    that starts at full speed); ``corner`` rounds those two corners of the
-    hats' ramps (C1, exact outside ``corner/2`` of each end) so that the fit's
-    equations stay differentiable in the ramp's timing.  With all weights 0 the
-    value is the skewed cosine's to the last bit.
+    that starts at full speed); ``corner`` rounds those two corners (C1, exact
+    outside ``corner/2`` of each end) so that the fit's equations stay
+    differentiable in the ramp's timing.
 
     Parameters
     ----------
@@ -349,14 +348,12 @@ def ramp_shape(s: Any, skew: Any = 0.0, weights: Sequence[Any] = (), xp: Any = n
     corner : float or casadi.SX
         Width of the rounding at each end, in units of ``s`` (0: sharp).
     """
-    num = skewed_cosine(s, skew, xp)  # clipped: its rate vanishes at both ends anyway
-    den = 1.0
-    if not len(weights):
-        return num
     if isinstance(corner, (int, float)) and corner == 0:
         sc = xp.fmin(xp.fmax(s, 0.0), 1.0)
     else:
         sc = smooth_max_c1(s, corner, xp) - smooth_max_c1(s - 1.0, corner, xp)
+    num = skewed_cosine(sc, skew, xp)
+    den = 1.0
     for k, wk in enumerate(weights):
         num = num + wk * _hat_integral(sc, k, xp)
         den = den + wk
