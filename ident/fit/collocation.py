@@ -201,19 +201,6 @@ class Collocation:
         longer stops with ``Maximum_CpuTime_Exceeded``, is not converged, and
         the fit says so.  A 4-window stage takes 1-60 s on the 2-core box; one
         solve once sat 50 minutes in MUMPS on another machine.
-    ramp_polish : bool
-        With the nuisances, hold the load ramps' shape weights
-        (:func:`ident.fit.model.ramp_shape`) where the start has them (0: the
-        skewed cosine) through the whole schedule, then free them in one more
-        solve at the last stage's width and horizon, from its solution, and keep
-        that solve only where it converges to a lower cost.  The family nests
-        the skewed cosine, so the polish can only take up ramp shape the cosine
-        missed.  Freed through the continuation instead, the shapes take up what
-        the wide kinks' rounding misses and lead the path elsewhere: plantsim
-        hsm-f1 seed 8201, from its true gaps, ended at a cost of 0.494 against
-        0.436 with the cosine throughout; freed at the last width only, design
-        starts on hsm-f1 seeds 4101 and 8400 ended at 2.54 and 2.05 against the
-        cosine's 2.44 and 1.53.
     """
 
     degree: int = 3
@@ -231,7 +218,6 @@ class Collocation:
     ipopt: Mapping[str, Any] = field(default_factory=dict)
     width_warm: str = "primal"
     max_cpu_s: float = 240.0
-    ramp_polish: bool = True
     _cache: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
 
     name = "collocation"
@@ -313,7 +299,6 @@ class Collocation:
             V[:m.n_shared] = start.shared / scales["shs"]
         lbx, ubx = _bounds(nlp, problem, start, scales)
         V = np.clip(V, lbx, ubx)
-        ramp_ix = _ramp_indices(nlp, problem)
         lbg = np.zeros(nlp.n_g)
         ubg = np.zeros(nlp.n_g)
         if nlp.layout["n_mono"]:
@@ -331,8 +316,7 @@ class Collocation:
                 status, success = OUT_OF_TIME, False
                 break
             P = _params(nlp, problem, scales, w, hz)
-            lo, hi = _held(lbx, ubx, ramp_ix, V)  # the ramps' shapes: the polish frees them
-            args = dict(x0=V, p=P, lbx=lo, ubx=hi, lbg=lbg, ubg=ubg)
+            args = dict(x0=V, p=P, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             if self.width_warm == "primal" and k_stage and w != schedule[k_stage - 1][0]:
                 lam_x = lam_g = None  # a sharper kink: the old multipliers mislead
             warm = lam_x is not None and lam_g is not None
@@ -364,35 +348,6 @@ class Collocation:
             V = Vn
             lam_x = np.asarray(sol["lam_x"]).ravel()
             lam_g = np.asarray(sol["lam_g"]).ravel()
-        if self.ramp_polish and ramp_ix.size and success and stages:
-            w, hz = schedule[-1]
-            cap = stage_cpu_cap(cpu_s, time.thread_time() - cpu0, self.max_cpu_s)
-            if cap is None or cap > 0:
-                ts = time.perf_counter()
-                args = dict(x0=V, p=_params(nlp, problem, scales, w, hz), lbx=lbx, ubx=ubx,
-                            lbg=lbg, ubg=ubg)
-                warm = lam_x is not None and lam_g is not None
-                if warm:  # from the optimum with the weights at their bound, unpushed
-                    lx = lam_x.copy()
-                    lx[ramp_ix] = 0.0
-                    args.update(lam_x0=lx, lam_g0=lam_g)
-                solver = nlp.solver(warm=warm, max_cpu_s=cap)
-                sol = solver(**args)
-                st = solver.stats()
-                p_status = str(st.get("return_status", "unknown"))
-                p_ok = p_status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-                it = int(st.get("iter_count", 0))
-                total_it += it
-                p_cost = float(sol["f"])
-                Vn = np.asarray(sol["x"]).ravel()
-                stages.append(StageInfo(width=float(w) if m.family is Family.G1 else None,
-                                        status=p_status, success=p_ok, iterations=it,
-                                        seconds=time.perf_counter() - ts, cost=p_cost,
-                                        infeasibility=_last_inf_pr(st)))
-                if p_ok and p_cost < cost and np.all(np.isfinite(Vn)):
-                    V, cost, status = Vn, p_cost, p_status
-                    lam_x = np.asarray(sol["lam_x"]).ravel()
-                    lam_g = np.asarray(sol["lam_g"]).ravel()
         est = _unpack(nlp, problem, V, scales, widths[-1])
         est.extra.update({"lam_x": lam_x, "lam_g": lam_g, "scales": scales,
                           "width": float(widths[-1])})
@@ -975,27 +930,6 @@ def _bounds(nlp: CollocationNLP, problem: Problem, est: Estimate,
             lb[L["o_x0"] + i * L["n_start"] + j] = 0.0
             ub[L["o_x0"] + i * L["n_start"] + j] = 0.0
     return lb, ub
-
-
-def _held(lb: np.ndarray, ub: np.ndarray, ix: np.ndarray,
-          V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds with the variables at ``ix`` fixed at their values in ``V``."""
-    if not ix.size:
-        return lb, ub
-    lo, hi = lb.copy(), ub.copy()
-    lo[ix] = hi[ix] = V[ix]
-    return lo, hi
-
-
-def _ramp_indices(nlp: CollocationNLP, problem: Problem) -> np.ndarray:
-    """Positions of every window's ramp-shape weights in the decision vector."""
-    from .model import RAMP_PARAMS
-
-    L = nlp.layout
-    names = problem.model.window_names
-    cols = [names.index(nm) for nm in RAMP_PARAMS if nm in names]
-    return np.array([L["o_win"] + i * L["nwin"] + j for i in range(L["nw"]) for j in cols],
-                    dtype=int)
 
 
 def _pack(nlp: CollocationNLP, problem: Problem, est: Estimate, scales: dict,

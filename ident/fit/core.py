@@ -216,7 +216,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         the held path reached 1.36 at the truth.
     nuisance : bool
         Fit the plant nuisances with the gaps (default): per-window channel
-        offsets, drag torques spread over the shafts and the ramps' shape
+        offsets, drag torques spread over the shafts and the ramps' skew
         (:mod:`ident.fit.model`, ``nuisance``).  Without them, on independent
         plant recordings (``validation.plantsim``, seed 1000 of both mills,
         started at the truth) the transient-band residual stayed 3-6.5 times
