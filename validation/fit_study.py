@@ -340,6 +340,10 @@ def main(argv: list[str] | None = None) -> int:
                         "truth no fit is classed as at the optimum or in a local minimum)")
     p.add_argument("--summary-only", action="store_true")
     args = p.parse_args(argv)
+    fits = tuple(f for f in args.fits.split(",") if f)
+    bad = sorted(set(fits) - set(FITS))
+    if bad:
+        p.error(f"--fits: unknown {bad}; choose from {list(FITS)}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = [json.loads(x) for x in out.read_text().splitlines()] if out.exists() else []
@@ -357,10 +361,6 @@ def main(argv: list[str] | None = None) -> int:
         from tqdm import tqdm
 
         with ProcessPoolExecutor(max_workers=args.jobs) as ex, out.open("a") as fh:
-            fits = tuple(f for f in args.fits.split(",") if f)
-            bad = sorted(set(fits) - set(FITS))
-            if bad:
-                p.error(f"--fits: unknown {bad}; choose from {list(FITS)}")
             futs = [ex.submit(run_one, g, m, s, str(tmp), fits) for g, m, s in jobs]
             for fu in tqdm(as_completed(futs), total=len(futs), desc="fit study",
                            file=sys.stderr):
