@@ -20,13 +20,12 @@ wider than an identified gap's accuracy: the verdict bounds it and does not acce
 it; cold-s5 4102's C34, 0.04 mrad against a closed gap, is the one miss).
 
 Stability (item 7): the hot strip mill's recording refitted from starts nudged by
-1e-6, and a second noise draw of the same plant, give the same verdicts on the
-measured gaps, the same gaps within their 95 % intervals, and right gaps.
+1e-6 gives the same verdicts on the measured gaps and the same gaps within their 95 %
+intervals.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import numpy as np
@@ -105,21 +104,19 @@ def test_intervals_of_accepted_gaps_cover_the_truth(fits):
     assert accepted >= 6 and covered >= accepted - 1, rows
 
 
-def test_a_nudged_start_and_another_noise_draw_give_the_same_answer(fits, tmp_path):
-    mill, draw, windows, truth, res = fits["hsm-f1"]
+def test_a_nudged_start_gives_the_same_answer(fits):
+    """The outcome does not hang on rounding: a start moved by 1e-6 of each gap ends where
+    the designed start did, within what the fit says it knows.  (Another noise draw of the
+    same plant was refitted here too; the fixture's two mills and ``make validate``'s draws
+    cover that, and the suite could not afford a fourth fit of the plant.)"""
+    mill, _, windows, _, res = fits["hsm-f1"]
     rng = np.random.default_rng(7)
     nudged = {e.id: max(e.gap, 5e-4) * (1.0 + 1e-6 * rng.standard_normal())
               for e in mill.elements}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         again = fit_gaps(mill, windows, starts=[nudged])
-        other_w, _ = _windows(mill, dataclasses.replace(draw, noise_seed=draw.noise_seed + 1),
-                              tmp_path / "other-noise.csv")
-        other = fit_gaps(mill, other_w)
     for eid in _measured(mill):
-        a, b, c = res.elements[eid], again.elements[eid], other.elements[eid]
-        assert b.identified == a.identified and c.identified == a.identified, (eid, a.reason,
-                                                                                b.reason, c.reason)
-        # the same answer within what the fit says it knows
+        a, b = res.elements[eid], again.elements[eid]
+        assert b.identified == a.identified, (eid, a.reason, b.reason)
         assert abs(b.gap - a.gap) <= Z95 * max(a.gap_se, b.gap_se), (eid, a.gap, b.gap)
-        assert abs(c.gap - truth[eid]) <= tolerance(truth[eid]), (eid, c.gap, truth[eid])
