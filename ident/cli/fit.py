@@ -88,7 +88,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "from the last identified gaps; about twice the time) or 'never'")
     p.add_argument("--nuisance", action=argparse.BooleanOptionalAction, default=True,
                    help="fit the plant nuisances with the gaps: per-window channel offsets, "
-                        "drag torques spread over the shafts and the load ramps' skew "
+                        "drag torques spread over the shafts and the load ramps' shape "
                         "(default; --no-nuisance leaves them out)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
                    help="CPU seconds of the fit: after them no further start or path is "

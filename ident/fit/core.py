@@ -216,7 +216,7 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         the held path reached 1.36 at the truth.
     nuisance : bool
         Fit the plant nuisances with the gaps (default): per-window channel
-        offsets, drag torques spread over the shafts and the ramps' skew
+        offsets, drag torques spread over the shafts and the ramps' shape
         (:mod:`ident.fit.model`, ``nuisance``).  Without them, on independent
         plant recordings (``validation.plantsim``, seed 1000 of both mills,
         started at the truth) the transient-band residual stayed 3-6.5 times
@@ -262,7 +262,8 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
     if not isinstance(method, (Collocation, SingleShooting)):
         raise FitError(f"method must be Collocation(...) or SingleShooting(...). "
                        f"Got {type(method).__name__}.")
-    kw: dict[str, Any] = {"nuisance": bool(nuisance)}
+    kw: dict[str, Any] = {"nuisance": bool(nuisance),
+                          "ramp_weights": bool(getattr(method, "ramp_polish", False))}
     if gap_max is not None:
         kw["gap_max"] = gap_max
     model = build_fit_model(mill, family=family, effects=effects, **kw)

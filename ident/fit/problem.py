@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .model import FitModel, static_state
+from .model import RAMP_PARAMS, RAMP_WEIGHT_MAX, FitModel, static_state
 from .windows import FitWindow
 
 __all__ = ["Problem", "Estimate", "SolveInfo", "StageInfo", "make_problem", "initial_estimate",
@@ -108,6 +108,11 @@ class Problem:
             lb.append(-SKEW_MAX)  # the ramp's skew (ident.fit.model.skewed_cosine)
             ub.append(SKEW_MAX)
             sc.append(0.3)
+        for nm in RAMP_PARAMS:
+            if nm in self.model.window_names:
+                lb.append(0.0)  # the ramp's shape weights (ident.fit.model.ramp_shape)
+                ub.append(RAMP_WEIGHT_MAX)
+                sc.append(1.0)
         for c, _ in enumerate(self.model.offset_index):
             # a strain gauge's zero and drift: a few per cent of the channel's largest reading
             ref = max(float(np.max(np.abs(self.y[i][:, c]))) if self.y[i].size else 1.0, 1.0)

@@ -81,7 +81,7 @@ class SyntheticCase:
                 steps.append((bar.t_step_bite, 0.0, bar.static_torque, bar.rise_time))
                 steps.append((bar.t_step_release, bar.static_torque, 0.0, bar.fall_time))
             ts, L0, L1, rise = min(steps, key=lambda st: abs(st[0] - w.t_step))
-            row = np.zeros(m.n_window)  # skew, channel offsets 0: this generator has none
+            row = np.zeros(m.n_window)  # skew, ramp weights, offsets 0: it has none
             row[:6] = [L0 + self.scenario.idle_torque, L1 + self.scenario.idle_torque,
                        ts - w.t[0], rise, 0.0, 0.0]
             for eid in m.kgap_elements:

@@ -35,9 +35,16 @@ import numpy as np
 import scipy.sparse as sps
 import scipy.sparse.linalg as spl
 
+from .model import RAMP_PARAMS
+
 __all__ = ["Sensitivity", "Covariance", "covariance", "collocation_sensitivity",
            "shooting_sensitivity", "window_influence", "model_error_se", "channel_information",
            "Z95", "MODEL_ERROR_FLOOR", "MODEL_ERROR_GAIN"]
+
+#: A load ramp's shape weight at or below this is at its bound 0 and held there
+#: (:func:`collocation_sensitivity`): IPOPT leaves a bound variable within about
+#: 1e-8 of it, the polish's smallest useful weight is of order 0.1.
+RAMP_WEIGHT_AT_BOUND = 1e-6
 
 #: Two-sided 95 % normal quantile.
 Z95 = 1.959963984540054
@@ -370,7 +377,11 @@ def collocation_sensitivity(method: Any, problem: Any, est: Any) -> Sensitivity:
 
     The collocation states ``s`` solve ``G(s, theta) = 0``; with ``G_s``
     square and regular, ``ds/dtheta = -G_s^-1 G_theta`` and the residuals'
-    Jacobian is ``R_theta + R_s ds/dtheta``.
+    Jacobian is ``R_theta + R_s ds/dtheta``.  A load ramp's shape weight at its
+    bound 0 (:func:`ident.fit.model.ramp_shape`; every weight where the
+    collocation's polish found nothing to take up) is held there, not a
+    parameter: the estimate is the bounded family's, and counting it would widen
+    the gaps' intervals by shape the fit rejected.
     """
     from .collocation import _state_parts
 
@@ -391,9 +402,14 @@ def collocation_sensitivity(method: Any, problem: Any, est: Any) -> Sensitivity:
             idx.append(j)
             scl.append(sc["shs"][j])
             cols.append(("shared", j))
+    ramp = {m.window_names.index(nm) for nm in RAMP_PARAMS if nm in m.window_names}
+    V = est.extra["V"]
+    shaped = bool(est.extra.get("shaped", False))
     for i in range(L["nw"]):
         o = L["o_win"] + i * L["nwin"]
         for k in range(m.n_window):
+            if k in ramp and (not shaped or V[o + k] * sc["wis"][k] <= RAMP_WEIGHT_AT_BOUND):
+                continue  # a ramp weight at its bound 0, or not read: not in this window's ramp
             idx.append(o + k)
             scl.append(sc["wis"][k])
             cols.append(("window", i, k))

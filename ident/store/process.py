@@ -75,7 +75,7 @@ class Settings:
         (:func:`ident.store.campaign.neighbour_starts`); empty = the mill file's gaps.
     nuisance : bool
         Fit the plant nuisances with the gaps (``fit_gaps(nuisance=...)``: channel
-        offsets, drag, the ramps' skew).  Off in campaigns for now, unlike ``ident
+        offsets, drag, the ramps' shape).  Off in campaigns for now, unlike ``ident
         fit``: on the project's own recordings they cost 2-4 times the solve (the
         demo's day-14 recording: 67 s against 19 s, the same gaps), and a campaign
         study on plant recordings that would justify them has not run yet.
