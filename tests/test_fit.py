@@ -174,6 +174,7 @@ def test_interval_agrees_with_profile_likelihood(stat_fits):
 
 # ---- the method ----------------------------------------------------------------------
 @pytest.mark.slow
+@pytest.mark.timeout(1500)  # 601-694 s measured beside another test; the default 900 s is close
 def test_closed_gaps_are_found_closed(mill, tmp_path):
     """Every gap closed: the fit finds gaps near zero and no better fit than linear."""
     closed = {f"{e.id}.{k}": 0.0 for e in mill.elements for k in ("gap", "gap_open")}
