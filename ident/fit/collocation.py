@@ -362,20 +362,12 @@ class Collocation:
                                 max_iter=None if last or self.stage_max_iter is None
                                 else min(self.stage_max_iter, self.max_iter),
                                 max_cpu_s=cap)
-            sol = solver(**args)
-            st = solver.stats()
-            status = str(st.get("return_status", "unknown"))
-            success = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-            if last and not success and stationary(st):
-                status, success = STATIONARY, True
-            it = int(st.get("iter_count", 0))
-            total_it += it
-            cost = float(sol["f"])
+            sol, st, stage = _call(solver, args, w if m.family is Family.G1 else None, ts,
+                                   stationary_ok=last)
+            status, success, cost = stage.status, stage.success, stage.cost
+            total_it += stage.iterations
             Vn = np.asarray(sol["x"]).ravel()
-            stages.append(StageInfo(width=float(w) if m.family is Family.G1 else None,
-                                    status=status, success=success, iterations=it,
-                                    seconds=time.perf_counter() - ts, cost=cost,
-                                    infeasibility=_last_inf_pr(st)))
+            stages.append(stage)
             if not np.all(np.isfinite(Vn)):
                 success, status = False, "Invalid_Number_Detected"
                 break
@@ -402,18 +394,11 @@ class Collocation:
                     lx[ramp_ix] = 0.0
                     args.update(lam_x0=lx, lam_g0=lam_g)
                 solver = nlp_s.solver(warm=warm, max_cpu_s=cap)
-                sol = solver(**args)
-                st = solver.stats()
-                p_status = str(st.get("return_status", "unknown"))
-                p_ok = p_status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-                it = int(st.get("iter_count", 0))
-                total_it += it
-                p_cost = float(sol["f"])
+                sol, st, stage = _call(solver, args, w if m.family is Family.G1 else None, ts)
+                p_status, p_ok, p_cost = stage.status, stage.success, stage.cost
+                total_it += stage.iterations
                 Vn = np.asarray(sol["x"]).ravel()
-                stages.append(StageInfo(width=float(w) if m.family is Family.G1 else None,
-                                        status=p_status, success=p_ok, iterations=it,
-                                        seconds=time.perf_counter() - ts, cost=p_cost,
-                                        infeasibility=_last_inf_pr(st)))
+                stages.append(stage)
                 if p_ok and p_cost < cost and np.all(np.isfinite(Vn)):
                     V, cost, status, shaped = Vn, p_cost, p_status, True
                     lam_x = np.asarray(sol["lam_x"]).ravel()
@@ -1003,6 +988,23 @@ def _bounds(nlp: CollocationNLP, problem: Problem, est: Estimate,
             lb[L["o_x0"] + i * L["n_start"] + j] = 0.0
             ub[L["o_x0"] + i * L["n_start"] + j] = 0.0
     return lb, ub
+
+
+def _call(solver: Any, args: dict, width: float | None, t_start: float, *,
+          stationary_ok: bool = False) -> tuple[Any, Mapping[str, Any], StageInfo]:
+    """One IPOPT call: its solution, stats and stage record (``stationary_ok``: a call
+    that stopped at a bound at a stationary cost counts as converged, :func:`stationary`)."""
+    sol = solver(**args)
+    st = solver.stats()
+    status = str(st.get("return_status", "unknown"))
+    success = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    if stationary_ok and not success and stationary(st):
+        status, success = STATIONARY, True
+    stage = StageInfo(width=None if width is None else float(width), status=status,
+                      success=success, iterations=int(st.get("iter_count", 0)),
+                      seconds=time.perf_counter() - t_start, cost=float(sol["f"]),
+                      infeasibility=_last_inf_pr(st))
+    return sol, st, stage
 
 
 def _held(lb: np.ndarray, ub: np.ndarray, ix: np.ndarray,
