@@ -74,3 +74,43 @@ def test_a_solve_bounded_by_its_cpu_seconds_stops_unconverged(mill, case):
     used = time.thread_time() - t
     assert info.status == OUT_OF_TIME and not info.success, info.status
     assert used < 2.0 + 5.0 + 3.0, used  # the bound, one cap step, the unpacking
+
+
+def test_the_polish_keeps_only_a_converged_lower_cost_and_says_what_it_did(mill, case):
+    """``Collocation.polish``: one solve from a converged continuation with the ramps' shape
+    freed, at most ``POLISH_MAX_ITER`` iterations, recorded as a stage; kept only where it
+    ends converged below the cosine's cost, and then its estimate names the shaped NLP
+    (the residuals are that NLP's).  An unconverged solve is not polished."""
+    import numpy as np
+
+    from ident.fit import build_fit_model, make_problem
+    from ident.fit.collocation import POLISH_MAX_ITER
+    from ident.fit.core import _shared_from_gaps
+    from ident.fit.problem import initial_estimate
+
+    model = build_fit_model(mill, nuisance=True, ramp_weights=True)
+    problem = make_problem(model, case.windows)
+    method = Collocation(ramp_polish=True, widths=(1e-3,), horizons=())
+    start = initial_estimate(problem, _shared_from_gaps(model, {e.id: e.gap for e in mill.elements}),
+                             open_frac=0.5)
+    est, info = method.solve(problem, start)
+    assert info.success, info.status
+    assert not est.extra["shaped"]
+    got, ginfo = method.polish(problem, est, info)
+    polish = ginfo.stages[-1]
+    assert len(ginfo.stages) == len(info.stages) + 1 and polish.status.startswith("polish: ")
+    assert polish.iterations <= POLISH_MAX_ITER
+    if got is est:  # not kept: the cosine's numbers stand
+        assert ginfo.cost == info.cost and not (polish.success and polish.cost < info.cost)
+    else:
+        assert polish.success and ginfo.cost == polish.cost < info.cost
+        assert got.extra["shaped"]
+        r = method.residual_vector(problem, got)
+        r0 = method.residual_vector(problem, est)
+        assert r.shape == r0.shape and float(r @ r) < float(r0 @ r0)
+    # an unconverged solve comes back as it was, and so does a polished one
+    from dataclasses import replace
+    assert method.polish(problem, est, replace(info, success=False))[0] is est
+    if got is not est:
+        assert method.polish(problem, got, ginfo)[0] is got
+    assert np.isfinite(ginfo.cost)
