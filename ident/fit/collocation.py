@@ -223,10 +223,13 @@ class Collocation:
         on hsm-f1 seeds 4101 and 8400 ended at 2.54 and 2.05 against the
         cosine's 2.44 and 1.53.  Run after every converged solve (stop 38), it
         cost 70-124 s on fits that passed without it (plantsim hsm-f1 8401,
-        8402) and took ``tests/test_fit_plant.py``'s hsm-f1 fit past 900 s; on
+        8402) and took ``tests/test_fit_plant.py``'s hsm-f1 fit past 900 s.  On
         ``validation.fit_study --ramp-polish``, plant seeds 8400-8402 of both
         mills from the designed gaps (21 measured gaps, 900 s budget), accepted
-        and right went from 43 % to 71 %, none accepted but wrong.
+        and right went from 43 % to 71 % (after every solve) and 81 % (only
+        after a failed check, the baseline polished too; four of the six
+        recordings measured before the baseline's polish), none accepted but
+        wrong.
     """
 
     degree: int = 3
@@ -334,10 +337,7 @@ class Collocation:
         V = np.clip(V, lbx, ubx)
         ramp_ix = _ramp_indices(nlp, problem)
         V[ramp_ix] = 0.0  # the skewed cosine (these NLPs do not read the weights)
-        lbg = np.zeros(nlp.n_g)
-        ubg = np.zeros(nlp.n_g)
-        if nlp.layout["n_mono"]:
-            ubg[-nlp.layout["n_mono"]:] = np.inf
+        lbg, ubg = _constraint_bounds(nlp)
         lam_x = start.extra.get("lam_x") if own else None
         lam_g = start.extra.get("lam_g") if own else None
         stages = []
@@ -421,10 +421,7 @@ class Collocation:
         nlp_s = self.nlp(problem, shaped=True)  # the same layout, the shaped ramps
         scales, w, hz = est.extra["scales"], est.extra["width"], est.extra.get("horizon")
         lbx, ubx = _bounds(nlp, problem, est, scales)
-        lbg = np.zeros(nlp.n_g)
-        ubg = np.zeros(nlp.n_g)
-        if nlp.layout["n_mono"]:
-            ubg[-nlp.layout["n_mono"]:] = np.inf
+        lbg, ubg = _constraint_bounds(nlp)
         # from the skewed cosine's optimum (weights 0): the family nests it
         args = dict(x0=est.extra["V"], p=_params(nlp_s, problem, scales, w, hz), lbx=lbx,
                     ubx=ubx, lbg=lbg, ubg=ubg)
@@ -1046,6 +1043,15 @@ def _call(solver: Any, args: dict, width: float | None, t_start: float, *,
                       seconds=time.perf_counter() - t_start, cost=float(sol["f"]),
                       infeasibility=_last_inf_pr(st))
     return sol, st, stage
+
+
+def _constraint_bounds(nlp: CollocationNLP) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the constraints: equalities, then the monotonicity rows (>= 0)."""
+    lbg = np.zeros(nlp.n_g)
+    ubg = np.zeros(nlp.n_g)
+    if nlp.layout["n_mono"]:
+        ubg[-nlp.layout["n_mono"]:] = np.inf
+    return lbg, ubg
 
 
 def _held(lb: np.ndarray, ub: np.ndarray, ix: np.ndarray,
