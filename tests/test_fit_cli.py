@@ -184,3 +184,20 @@ def test_a_bad_wear_model_exits_2_before_the_fit(tmp_path, mill_path, recording,
                  "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "model.joblib" in err[0]
+
+
+def test_ramp_polish_is_on_unless_turned_off():
+    """``ident fit`` polishes the load ramps' shape by default (``Collocation``'s
+    default), and ``--no-ramp-polish`` turns it off, with ``--max-iter`` or without."""
+    import argparse
+
+    from ident.cli import fit as cli_fit
+
+    sub = argparse.ArgumentParser().add_subparsers()
+    cli_fit.add_parser(sub)
+    parser = sub.choices["fit"]
+    base = ["rec.mcap", "--mill", "mill.toml"]
+    assert cli_fit._method(parser.parse_args(base)).ramp_polish
+    assert not cli_fit._method(parser.parse_args(base + ["--no-ramp-polish"])).ramp_polish
+    m = cli_fit._method(parser.parse_args(base + ["--no-ramp-polish", "--max-iter", "50"]))
+    assert not m.ramp_polish and m.max_iter == 50

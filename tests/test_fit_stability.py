@@ -11,6 +11,7 @@ its verdict rejected the right gaps on C34's transient band; see issue 12's note
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from ident.fit import Collocation, fit_gaps, synthetic_case
@@ -114,3 +115,34 @@ def test_the_polish_keeps_only_a_converged_lower_cost_and_says_what_it_did(mill,
     if got is not est:
         assert method.polish(problem, got, ginfo)[0] is got
     assert np.isfinite(ginfo.cost)
+
+
+def test_only_a_run_that_can_still_be_the_answer_is_polished():
+    """``core._polish``: a converged run more than ``POLISH_LEAD`` above the fit's lowest
+    converged cost so far (a restart's local minimum) is not polished; an unconverged one
+    never is; where the strategy has no polish, nothing happens."""
+    from ident.fit.core import POLISH_LEAD, _lowest_converged, _polish
+    from ident.fit.problem import Estimate, SolveInfo
+
+    class Strict:
+        ramp_polish = True
+
+        def polish(self, *a, **k):  # pragma: no cover - reaching it fails the test
+            raise AssertionError("polished a run that cannot be the fit's answer")
+
+    est = Estimate(shared=np.zeros(2), window=np.zeros((1, 3)), x0=np.zeros((1, 2)))
+    info = SolveInfo(method="collocation", status="Solve_Succeeded", success=True,
+                     iterations=10, seconds=1.0, cost=2.0)
+    above = 2.0 / (1.0 + POLISH_LEAD) * 0.999
+    assert _polish(Strict(), None, est, info, None, above) == (est, info)
+    assert above * (1.0 + POLISH_LEAD) < info.cost
+    bad = SolveInfo(method="collocation", status="Maximum_Iterations_Exceeded",
+                    success=False, iterations=300, seconds=1.0, cost=0.5)
+    assert _polish(Strict(), None, est, bad, None, None) == (est, bad)
+
+    class Off(Strict):
+        ramp_polish = False
+
+    assert _polish(Off(), None, est, info, None, None) == (est, info)
+    runs = [(0, None, est, info, "continued"), (1, None, est, bad, "held")]
+    assert _lowest_converged(runs) == 2.0 and _lowest_converged(runs[1:]) is None

@@ -184,7 +184,7 @@ FITS = ("design", "off", "truth")
 
 
 def run_one(gen: str, mill_name: str, seed: int, directory: str,
-            fits: tuple[str, ...] = FITS, ramp_polish: bool = False) -> dict:
+            fits: tuple[str, ...] = FITS, ramp_polish: bool = True) -> dict:
     """Fit one recording three times (module docstring), or the named ``fits`` of them;
     never raises."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -342,10 +342,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="which fits per recording (default design,off,truth; without the "
                         "truth no fit is classed as at the optimum or in a local minimum)")
     p.add_argument("--summary-only", action="store_true")
-    p.add_argument("--ramp-polish", action=argparse.BooleanOptionalAction, default=False,
+    p.add_argument("--ramp-polish", action=argparse.BooleanOptionalAction, default=True,
                    help="Collocation(ramp_polish=...): a converged run that fails the "
                         "transient-band check is polished with the load ramps' shape freed "
-                        "(default off, as in ident fit)")
+                        "(default on, as in ident fit)")
     args = p.parse_args(argv)
     fits = tuple(f for f in args.fits.split(",") if f)
     bad = sorted(set(fits) - set(FITS))

@@ -90,6 +90,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="fit the plant nuisances with the gaps: per-window channel offsets, "
                         "drag torques spread over the shafts and the load ramps' shape "
                         "(default; --no-nuisance leaves them out)")
+    p.add_argument("--ramp-polish", action=argparse.BooleanOptionalAction, default=True,
+                   help="where a converged fit's residual fails the transient-band check, "
+                        "one more solve lets the load ramps take linear, exponential and "
+                        "S-shaped forms, kept where it fits better (default; "
+                        "--no-ramp-polish is faster and identifies fewer gaps on plant "
+                        "recordings)")
     p.add_argument("--time-budget", type=float, default=1800.0, metavar="S",
                    help="CPU seconds of the fit: after them no further start or path is "
                         "begun and a restart under way stops unfinished (default 1800; the "
@@ -105,7 +111,9 @@ def _method(args: argparse.Namespace) -> Collocation | SingleShooting:
     if args.method == "shooting":
         return SingleShooting() if args.max_iter is None else SingleShooting(
             max_nfev=args.max_iter)
-    return Collocation() if args.max_iter is None else Collocation(max_iter=args.max_iter)
+    polish = bool(getattr(args, "ramp_polish", True))
+    return (Collocation(ramp_polish=polish) if args.max_iter is None
+            else Collocation(max_iter=args.max_iter, ramp_polish=polish))
 
 
 def _windows_kw(args: argparse.Namespace) -> dict[str, Any]:

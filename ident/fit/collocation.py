@@ -202,10 +202,10 @@ class Collocation:
         the fit says so.  A 4-window stage takes 1-60 s on the 2-core box; one
         solve once sat 50 minutes in MUMPS on another machine.
     ramp_polish : bool
-        Off by default: on, the full suite ran past 80 minutes (the fits of our own
-        generator that fail the check polish too), twice its earlier time; the
-        gain measured on 6 plant recordings is below.  Polish a converged run whose residual fails the transient-band check
-        (:func:`ident.fit.fit_gaps` decides; :meth:`polish` does it): with the
+        On by default.  Polish a converged run whose residual fails the
+        transient-band check and whose cost is within
+        :data:`~ident.fit.core.POLISH_LEAD` of the fit's lowest converged cost so
+        far (:func:`ident.fit.fit_gaps` decides; :meth:`polish` does it): with the
         nuisances, the continuation fits the skewed cosine (the load ramps' shape
         weights, :func:`ident.fit.model.ramp_shape`, held and not read), then
         one more solve at the last stage's width and horizon, from its solution
@@ -247,7 +247,7 @@ class Collocation:
     ipopt: Mapping[str, Any] = field(default_factory=dict)
     width_warm: str = "primal"
     max_cpu_s: float = 240.0
-    ramp_polish: bool = False
+    ramp_polish: bool = True
     _cache: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
 
     name = "collocation"
