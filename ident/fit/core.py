@@ -499,17 +499,6 @@ def fit_gaps(mill: Mill, windows: Sequence[FitWindow] | FitWindow, *,
         # accepted at 1.2 times with C46 2.73 against 3.17, it ended higher and changed
         # nothing)
         attempt(_confirm_vector(model, _best_run(runs)[2].shared), "confirm", paths[0])
-    if restarts == "auto" and model.family is Family.G1 and any(r[3].success for r in runs):
-        # still above the noise under the allowance: each series pair split equally, on the
-        # held path.  Plantsim cold-s5 8405 from the designed gaps: continued and confirmed
-        # at cost 1.710 with C12/C23 at 1.19/0.01 mrad (truth 0.75/0.59), T_C12 41 times
-        # the noise in the transient band but a model error of 4.7 %, accepted; from the
-        # true gaps the held path reached 0.557, every gap right
-        for sv, tag in _series_starts(model, runs):
-            if not tag.startswith("split") or over_budget() or \
-                    not _above_noise_floor(method, problem, runs, strict=True):
-                break
-            attempt(sv, tag, held_path)
     ok = [r for r in runs if r[3].success and np.isfinite(r[3].cost)]
     pool = ok if ok else [r for r in runs if np.isfinite(r[3].cost)] or runs
     k_best, sv_best, est, info, path_best = min(pool, key=lambda r: r[3].cost)
